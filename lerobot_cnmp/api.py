@@ -1,0 +1,265 @@
+"""The in-memory Python API: fit a CNMP on demonstrations held in arrays, condition, predict.
+
+    from lerobot_cnmp.api import CNMPModel, Condition
+    model = CNMPModel().fit(demos, steps=3000)             # demos: [N, T, D] (or a list of [T_i, D])
+    mean, std = model.predict(np.linspace(0, 1, 200),      # [200, D] each
+                              [Condition(0.5, (0.5, 0.4))])
+
+Training goes through ``CNMPPolicy.forward`` -- the same loss and sampler as ``lerobot-train`` -- and
+``save`` writes a LeRobot checkpoint (config, weights, processors) that ``lerobot-eval`` can run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import trange
+
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION
+
+from lerobot_cnmp.conditions import Condition
+from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
+from lerobot_cnmp.modeling_cnmp import PHASE_KEY, CNMPPolicy, Context
+
+__all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos"]
+
+
+def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Demonstrations ``[N, T, D]`` or a list of ``[T_i, D]`` -> (values, valid, phase), padded to max T."""
+    seqs = [np.asarray(d, dtype=np.float32) for d in (demos if isinstance(demos, (list, tuple)) else list(demos))]
+    if not seqs:
+        raise ValueError("no demonstrations given")
+    for i, s in enumerate(seqs):
+        if s.ndim != 2:
+            raise ValueError(f"demonstration {i} must be [T, D] (frames, SM dims); got shape {s.shape}")
+        if s.shape[0] < 2:
+            raise ValueError(f"demonstration {i} has {s.shape[0]} frame(s); at least 2 define a phase")
+        if not np.isfinite(s).all():
+            raise ValueError(f"demonstration {i} contains NaN or infinite values")
+    dims = {s.shape[1] for s in seqs}
+    if len(dims) != 1:
+        raise ValueError(f"demonstrations disagree on the SM dimension: {sorted(dims)}")
+    t_max, d = max(s.shape[0] for s in seqs), dims.pop()
+    values = np.zeros((len(seqs), t_max, d), dtype=np.float32)
+    valid = np.zeros((len(seqs), t_max), dtype=bool)
+    phase = np.zeros((len(seqs), t_max), dtype=np.float32)
+    for i, s in enumerate(seqs):
+        values[i, : len(s)], valid[i, : len(s)] = s, True
+        phase[i, : len(s)] = np.arange(len(s)) / (len(s) - 1)
+    return values, valid, phase
+
+
+class CNMPModel:
+    """A CNMP in memory: ``fit``, ``predict``, ``save`` / ``load``. Works in the data's own units."""
+
+    def __init__(self, config: CNMPConfig | None = None, device: str = "cpu", **overrides):
+        self.config = config
+        self.overrides = overrides
+        self.device = device
+        self.policy: CNMPPolicy | None = None
+        self.sm_mean = self.sm_std = self.task_mean = self.task_std = None
+
+    # ---- fitting --------------------------------------------------------------------------------------
+
+    def _build(self, sm_dim: int, task_dim: int, demo_length: int) -> None:
+        cfg = self.config or CNMPConfig(device=self.device, **self.overrides)
+        cfg.device = self.device
+        cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(sm_dim,))}
+        cfg.input_features = (
+            {TASK_PARAMS: PolicyFeature(type=FeatureType.STATE, shape=(task_dim,))} if task_dim else {}
+        )
+        if cfg.demo_length is None:
+            cfg.demo_length = demo_length
+        self.config = cfg
+        self.policy = CNMPPolicy(cfg).to(self.device)
+
+    def fit(
+        self,
+        demos,
+        task_params=None,
+        steps: int = 3000,
+        batch_size: int = 64,
+        seed: int = 0,
+        progress: bool = True,
+    ) -> CNMPModel:
+        """Train on demonstrations ``[N, T, D]`` (or a list of ``[T_i, D]``), optionally with per-demo task
+        parameters γ ``[N, G]``. Each step draws ``batch_size`` demos and, from each, observations and queries."""
+        values, valid, phase = pad_demos(demos)
+        n, _, d = values.shape
+        gamma = None
+        if task_params is not None:
+            gamma = np.asarray(task_params, dtype=np.float32)
+            if gamma.ndim != 2 or gamma.shape[0] != n:
+                raise ValueError(f"task_params must be [N={n}, G]; got shape {gamma.shape}")
+            if not np.isfinite(gamma).all():
+                raise ValueError("task_params contain NaN or infinite values")
+        if steps < 1 or batch_size < 1:
+            raise ValueError(f"steps and batch_size must be >= 1; got {steps}, {batch_size}")
+        if self.policy is None:
+            flat = values[valid]
+            self.sm_mean, self.sm_std = flat.mean(0), np.maximum(flat.std(0), 1e-6)
+            if gamma is not None:
+                self.task_mean, self.task_std = gamma.mean(0), np.maximum(gamma.std(0), 1e-6)
+            lengths = valid.sum(1)
+            self._build(d, 0 if gamma is None else gamma.shape[1], int(np.median(lengths)))
+        elif d != self.config.sm_dim:
+            raise ValueError(f"demos have SM dimension {d}, the model has {self.config.sm_dim}")
+        dev = self.device
+        x = torch.from_numpy((values - self.sm_mean) / self.sm_std).to(dev)
+        pad = torch.from_numpy(~valid).to(dev)
+        ph = torch.from_numpy(phase).to(dev)
+        g = None if gamma is None else torch.from_numpy(self._norm_task(gamma)).to(dev)
+        gen = torch.Generator(device=dev).manual_seed(seed)
+        torch.manual_seed(seed)
+        policy = self.policy
+        policy.train()
+        optim = self.config.get_optimizer_preset().build(policy.get_optim_params())
+        clip = self.config.optimizer_grad_clip_norm
+        self.history: list[dict] = []
+        bar = trange(steps, desc="CNMP fit", disable=not progress)
+        for step in bar:
+            idx = torch.randint(n, (batch_size,), generator=gen, device=dev)
+            batch = {ACTION: x[idx], f"{ACTION}_is_pad": pad[idx], PHASE_KEY: ph[idx]}
+            if g is not None:
+                batch[TASK_PARAMS] = g[idx]
+            loss, info = policy.forward(batch, generator=gen)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
+            optim.step()
+            if step % 50 == 0 or step == steps - 1:
+                self.history.append({"step": step, **info})
+                bar.set_postfix(nll=f"{info['nll']:.3f}", mae=f"{info['mae']:.3f}")
+        policy.eval()
+        return self
+
+    # ---- prediction -----------------------------------------------------------------------------------
+
+    def _norm_task(self, gamma: np.ndarray) -> np.ndarray:
+        return ((gamma - self.task_mean) / self.task_std).astype(np.float32)
+
+    def _require_fitted(self) -> None:
+        if self.policy is None:
+            raise RuntimeError("the model is not fitted: call fit(demos) or CNMPModel.load(path) first")
+
+    def context(self, conditions: list[Condition], task_params=None) -> Context:
+        """Normalized CNMP context for a list of conditions (SM units) and optional γ."""
+        self._require_fitted()
+        d = self.config.sm_dim
+        if not conditions:
+            raise ValueError("empty context: give at least one Condition to condition on")
+        ph = np.zeros((1, len(conditions)), np.float32)
+        vals = np.zeros((1, len(conditions), d), np.float32)
+        mask = np.zeros((1, len(conditions), d), np.float32)
+        for k, c in enumerate(conditions):
+            if len(c.values) != d:
+                raise ValueError(f"condition {k} has {len(c.values)} values; the SM has {d} dims")
+            if not 0.0 <= c.phase <= 1.0:
+                raise ValueError(f"condition {k} has phase {c.phase}, outside [0, 1]")
+            if c.dims is not None and (not c.dims or min(c.dims) < 0 or max(c.dims) >= d):
+                raise ValueError(f"condition {k} constrains dims {c.dims}; valid SM dims are 0..{d - 1}")
+            v = np.asarray(c.values, np.float32)
+            m = c.mask()
+            if not np.isfinite(v[m > 0]).all():
+                raise ValueError(f"condition {k} has NaN or infinite values in its constrained dims")
+            ph[0, k], vals[0, k], mask[0, k] = c.phase, np.nan_to_num((v - self.sm_mean) / self.sm_std), m
+        gamma = None
+        if self.config.task_dim:
+            if task_params is None:
+                raise ValueError(f"this model is conditioned on {self.config.task_dim} task parameters γ; give task_params")
+            gp = np.asarray(task_params, np.float32).reshape(1, -1)
+            if gp.shape[1] != self.config.task_dim or not np.isfinite(gp).all():
+                raise ValueError(f"task_params must be {self.config.task_dim} finite values; got {gp}")
+            gamma = torch.from_numpy(self._norm_task(gp)).to(self.device)
+        t = lambda a: torch.from_numpy(a).to(self.device)  # noqa: E731
+        return Context(t(ph), t(vals), t(mask), torch.ones(ph.shape, dtype=torch.bool, device=self.device), gamma)
+
+    @torch.no_grad()
+    def predict(self, phases, conditions: list[Condition], task_params=None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and σ of the SM at ``phases`` (values in [0, 1]) given the conditions: two ``[M, D]`` arrays."""
+        q = np.asarray(phases, dtype=np.float32).reshape(-1)
+        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
+            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+        ctx = self.context(conditions, task_params)
+        mean, std = self.policy.model(ctx, torch.from_numpy(q[None]).to(self.device))
+        mean = mean[0].cpu().numpy() * self.sm_std + self.sm_mean
+        return mean, std[0].cpu().numpy() * self.sm_std
+
+    # ---- persistence ----------------------------------------------------------------------------------
+
+    def dataset_stats(self) -> dict:
+        stats = {ACTION: {"mean": self.sm_mean, "std": self.sm_std}}
+        if self.task_mean is not None:
+            stats[TASK_PARAMS] = {"mean": self.task_mean, "std": self.task_std}
+        return stats
+
+    def save(self, path: str | Path) -> Path:
+        """Write a LeRobot checkpoint: config.json, model.safetensors and the processors (with stats)."""
+        from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
+
+        self._require_fitted()
+        path = Path(path)
+        self.policy.save_pretrained(path)
+        pre, post = make_cnmp_pre_post_processors(self.config, self.dataset_stats())
+        pre.save_pretrained(path)
+        post.save_pretrained(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, device: str = "cpu") -> CNMPModel:
+        """Load a checkpoint written by ``save`` or by ``lerobot-train`` (its ``pretrained_model`` folder)."""
+        policy, pre, _ = load_pretrained(path, device=device)
+        model = cls(config=policy.config, device=device)
+        model.policy = policy
+        stats = normalizer_stats(pre)
+        model.sm_mean, model.sm_std = (np.asarray(stats[ACTION][k], np.float32) for k in ("mean", "std"))
+        if TASK_PARAMS in stats:
+            model.task_mean, model.task_std = (np.asarray(stats[TASK_PARAMS][k], np.float32) for k in ("mean", "std"))
+        return model
+
+
+def normalizer_stats(preprocessor) -> dict:
+    """The statistics held by a preprocessor's normalizer step, as numpy arrays."""
+    from lerobot.processor import NormalizerProcessorStep
+
+    for step in preprocessor.steps:
+        if isinstance(step, NormalizerProcessorStep):
+            return {k: {s: np.asarray(v.cpu() if hasattr(v, "cpu") else v) for s, v in d.items()} for k, d in step.stats.items()}
+    raise ValueError("the preprocessor has no normalizer step")
+
+
+def load_pretrained(path: str | Path, device: str | None = None):
+    """(policy, preprocessor, postprocessor) from a checkpoint folder or Hub repo id.
+
+    Restores the checkpoint's own processors (with its normalization statistics). Building processors
+    from ``PreTrainedConfig.from_pretrained(path)`` alone would silently get empty statistics, because
+    that config's ``pretrained_path`` stays None."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    path = str(path)
+    if Path(path).exists() and not (Path(path) / "config.json").is_file():
+        hint = Path(path) / "pretrained_model"
+        more = f" (did you mean {hint}?)" if (hint / "config.json").is_file() else ""
+        raise FileNotFoundError(f"no config.json in {path}: not a CNMP checkpoint folder{more}")
+    cfg_file = Path(path) / "config.json"
+    if cfg_file.is_file():
+        import json
+
+        kind = json.loads(cfg_file.read_text()).get("type")
+        if kind != "cnmp":
+            raise ValueError(f"the checkpoint at {path} is a {kind!r} policy, not a 'cnmp' one")
+    policy = CNMPPolicy.from_pretrained(path)
+    if device is not None:
+        policy.config.device = device
+        policy.to(device)
+    overrides = {"device_processor": {"device": policy.config.device}}
+    pre, post = make_pre_post_processors(
+        policy.config, pretrained_path=path, preprocessor_overrides=overrides
+    )
+    stats = normalizer_stats(pre)
+    if ACTION not in stats:
+        raise ValueError(f"the checkpoint at {path} has no normalization statistics for {ACTION!r}")
+    return policy, pre, post

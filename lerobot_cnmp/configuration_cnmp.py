@@ -1,0 +1,187 @@
+"""Configuration of the CNMP policy (``--policy.type=cnmp``).
+
+Defaults follow the paper (Seker et al., RSS 2019, Sec. III and IV-A) where it gives a value: MLP encoder
+and query (decoder) networks of 128 units, mean aggregation, Gaussian output with a softplus σ, NLL loss,
+1..n_max observations per training sample. Where the original trains with batch 1 and one query per
+step, we batch episodes and queries (``batch_size`` of ``lerobot-train``, ``m_max_targets``) and raise
+the learning rate accordingly; every such choice is a field here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
+from lerobot.optim import AdamConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+TASK_PARAMS = "observation.task_params"
+"""Fixed name of the per-episode task-parameter feature γ (dataset feature and env observation
+``task_params``)."""
+
+
+@PreTrainedConfig.register_subclass("cnmp")
+@dataclass
+class CNMPConfig(PreTrainedConfig):
+    """Conditional Neural Movement Primitive.
+
+    The sensorimotor (SM) trajectory the CNMP learns is the dataset's ``action`` sequence: ``action[k]`` is
+    the SM target commanded at frame ``k``, at phase ``t = k / (T - 1)`` of its episode of ``T`` frames.
+    Conditions (via-points, goals, in SM units) reach the policy through ``observation.environment_state``
+    in the layout of :mod:`lerobot_cnmp.conditions`; the current sensed SM is ``observation.state``; the
+    optional task parameters γ are the feature ``observation.task_params``.
+
+    Args:
+        encoder_layers: Widths of the encoder E's layers; the last is the size of the representation r.
+        decoder_layers: Hidden widths of the query network Q (its output layer, 2 x SM dim, is added).
+        min_std: Floor of the predicted σ (normalized units): σ = min_std + softplus(raw).
+        n_max_context: Most observations sampled from a demonstration per training sample (n ~ U{1..n_max}).
+        m_max_targets: Most query points per training sample (m ~ U{1..m_max}); the paper uses 1.
+        partial_obs_prob: Probability that a sampled observation constrains only a random non-empty subset
+            of the SM dimensions, so the model can be conditioned on any subset of dimensions.
+        max_episode_length: Longest demonstration (frames) the stock ``lerobot-train`` window must cover.
+        window_size: Number of frame offsets, spread over [-(max_episode_length-1), max_episode_length-1],
+            that ``lerobot-train`` loads per sample (``action_delta_indices``). Each sample then sees about
+            window_size / 2 frames of its episode at random phases. Loading cost is linear in it.
+        use_task_params: Condition on γ (``observation.task_params``). None: use it when the dataset has it.
+            True: require it (a dataset without it is rejected).
+        demo_length: Frames of a demonstration; execution advances the phase by 1 / (demo_length - 1) per
+            step. None: taken from the training dataset (median episode length) when training starts.
+        state_feedback: At every control step, condition on the current sensed state as well as on the
+            episode's conditions (the paper's execution loop). False: conditions only.
+        optimizer_lr: Adam learning rate (the paper: 1e-4 with batch 1; batched training tolerates more).
+        optimizer_grad_clip_norm: Gradient clipping used by ``lerobot-train``.
+    """
+
+    # Network (paper: MLPs of 128 units).
+    encoder_layers: tuple[int, ...] = (128, 128, 128)
+    decoder_layers: tuple[int, ...] = (128, 128, 128)
+    min_std: float = 0.01
+
+    # Training-step sampling.
+    n_max_context: int = 8
+    m_max_targets: int = 16
+    partial_obs_prob: float = 0.25
+
+    # Stock lerobot-train data window.
+    max_episode_length: int = 200
+    window_size: int = 32
+
+    # Task parameters γ.
+    use_task_params: bool | None = None
+
+    # Execution.
+    demo_length: int | None = None
+    state_feedback: bool = True
+
+    # Optimizer.
+    optimizer_lr: float = 1e-3
+    optimizer_weight_decay: float = 0.0
+    optimizer_grad_clip_norm: float = 10.0
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ENV": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MEAN_STD,
+        }
+    )
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.encoder_layers = tuple(int(w) for w in self.encoder_layers)
+        self.decoder_layers = tuple(int(w) for w in self.decoder_layers)
+        if not self.encoder_layers or min(self.encoder_layers) < 1:
+            raise ValueError(f"encoder_layers must be non-empty positive widths, got {self.encoder_layers}")
+        if min(self.decoder_layers, default=1) < 1:
+            raise ValueError(f"decoder_layers must be positive widths, got {self.decoder_layers}")
+        if not self.min_std > 0:
+            raise ValueError(f"min_std must be > 0, got {self.min_std}")
+        if self.n_max_context < 1 or self.m_max_targets < 1:
+            raise ValueError(
+                f"n_max_context and m_max_targets must be >= 1, got {self.n_max_context}, {self.m_max_targets}"
+            )
+        if not 0.0 <= self.partial_obs_prob <= 1.0:
+            raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
+        if self.max_episode_length < 2:
+            raise ValueError(f"max_episode_length must be >= 2, got {self.max_episode_length}")
+        if self.window_size < 2:
+            raise ValueError(f"window_size must be >= 2, got {self.window_size}")
+        if self.demo_length is not None and self.demo_length < 2:
+            raise ValueError(f"demo_length must be >= 2 frames, got {self.demo_length}")
+        for kind in ("STATE", "ENV", "ACTION"):
+            mode = self.normalization_mapping.get(kind, NormalizationMode.IDENTITY)
+            if mode not in (NormalizationMode.MEAN_STD, NormalizationMode.IDENTITY):
+                raise ValueError(
+                    f"normalization_mapping[{kind!r}] = {mode}: CNMP conditions are normalized with the action "
+                    "statistics, which supports MEAN_STD or IDENTITY only"
+                )
+
+    # ---- LeRobot interface -------------------------------------------------------------------------
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        """Sparse offsets spanning a whole episode from any anchor frame (see ``window_size``)."""
+        span = self.max_episode_length - 1
+        n = self.window_size
+        return sorted({round(-span + 2 * span * i / (n - 1)) for i in range(n)})
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> AdamConfig:
+        return AdamConfig(
+            lr=self.optimizer_lr,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    def validate_features(self) -> None:
+        if self.action_feature is None:
+            raise ValueError(f"CNMP needs the output feature {ACTION!r} (the SM trajectory); none was given")
+        if len(self.action_feature.shape) != 1:
+            raise ValueError(f"CNMP needs a flat {ACTION!r} vector, got shape {self.action_feature.shape}")
+        sm = self.sm_dim
+        state = self.robot_state_feature
+        if state is not None and tuple(state.shape) != (sm,):
+            raise ValueError(
+                f"{OBS_STATE!r} has shape {tuple(state.shape)} but the SM ({ACTION!r}) has {sm} dims: the "
+                "sensed state is fed back as SM, so they must match"
+            )
+        env = self.env_state_feature
+        if env is not None and env.shape[-1] % (2 + 2 * sm) != 0:
+            raise ValueError(
+                f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {sm} (the CNMP "
+                "condition layout, see lerobot_cnmp.conditions)"
+            )
+        if self.use_task_params and TASK_PARAMS not in self.input_features:
+            raise ValueError(
+                f"use_task_params=True but the dataset/env has no {TASK_PARAMS!r} feature; "
+                f"available inputs: {sorted(self.input_features)}"
+            )
+
+    # ---- Derived sizes -------------------------------------------------------------------------------
+
+    @property
+    def sm_dim(self) -> int:
+        return int(self.action_feature.shape[0])
+
+    @property
+    def task_dim(self) -> int:
+        if self.use_task_params is False or TASK_PARAMS not in (self.input_features or {}):
+            return 0
+        return int(self.input_features[TASK_PARAMS].shape[0])
+
+    @property
+    def max_conditions(self) -> int:
+        env = self.env_state_feature
+        return 0 if env is None else env.shape[-1] // (2 + 2 * self.sm_dim)

@@ -1,0 +1,437 @@
+"""Conditional Neural Movement Primitives (Seker, Imre, Piater, Ugur, RSS 2019).
+
+Read top-down:
+
+1. ``sample_context_and_targets`` -- the training step's draw (paper Sec. III-B): from each demonstration
+   in the batch, n ~ U{1..n_max} observations (t_i, SM(t_i)) and m ~ U{1..m_max} queries (t_q, SM(t_q)).
+2. ``CNMP`` -- pure torch:  r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i]);  r = mean_i r_i  (``aggregate``);
+   (μ_q, σ_q) = Q([t_q, γ, r])  (``decode``);  loss = -log N(SM(t_q) | μ_q, σ_q)  (``nll``, Eq. 1).
+3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2),
+   and executes online in ``select_action`` (condition on goals + current state, predict the next SM).
+
+Everything works on padded batches with validity masks; padded entries never change an output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor, nn
+
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_cnmp.conditions import decode_conditions
+from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
+
+PHASE_KEY = f"{ACTION}_phase"
+"""Optional batch key: the phase of every ``action`` window entry. The in-memory API provides it; for
+``lerobot-train`` batches it is derived from the dataset's episode table."""
+
+
+# --------------------------------------------------------------------------------------------------------
+# Data containers
+# --------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Episodes:
+    """Demonstrations (or windows of them) in a batch: ``values[b, j]`` is SM at ``phase[b, j]``."""
+
+    values: Tensor  # [B, W, D]
+    phase: Tensor  # [B, W] in [0, 1]
+    valid: Tensor  # [B, W] bool
+    task_params: Tensor | None = None  # [B, G]
+
+
+@dataclass
+class Context:
+    """Observations to condition on: SM ``values`` at ``phase``, ``mask`` = which SM dims are given."""
+
+    phase: Tensor  # [B, N]
+    values: Tensor  # [B, N, D]
+    mask: Tensor  # [B, N, D] float 0/1
+    valid: Tensor  # [B, N] bool
+    task_params: Tensor | None = None  # [B, G]
+
+
+@dataclass
+class Targets:
+    phase: Tensor  # [B, M]
+    values: Tensor  # [B, M, D]
+    valid: Tensor  # [B, M] bool
+
+
+# --------------------------------------------------------------------------------------------------------
+# 1. The training step's draw
+# --------------------------------------------------------------------------------------------------------
+
+
+def _random_valid_order(valid: Tensor, generator: torch.Generator | None) -> Tensor:
+    """A random permutation of each row's indices with the valid entries first."""
+    scores = torch.rand(valid.shape, generator=generator, device=valid.device)
+    scores = scores.masked_fill(~valid, 2.0)
+    return scores.argsort(dim=1)
+
+
+def _uniform_count(upper: Tensor, generator: torch.Generator | None) -> Tensor:
+    """Per row, an integer uniform in {1, ..., upper} (upper >= 1)."""
+    u = torch.rand(upper.shape, generator=generator, device=upper.device)
+    return 1 + (u * upper).long().clamp(max=upper - 1)
+
+
+def sample_context_and_targets(
+    episodes: Episodes,
+    n_max: int,
+    m_max: int,
+    partial_obs_prob: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> tuple[Context, Targets]:
+    """Sample, per episode, n ~ U{1..min(n_max, #valid)} observations and m ~ U{1..min(m_max, #valid)}
+    queries among its valid entries. With probability ``partial_obs_prob`` an observation constrains only
+    a random non-empty subset of the SM dimensions."""
+    values, phase, valid = episodes.values, episodes.phase, episodes.valid
+    B, W, D = values.shape  # noqa: N806
+    n_valid = valid.sum(dim=1)
+    if bool((n_valid < 1).any()):
+        raise ValueError("every episode in the batch needs at least one valid (non-padded) frame")
+
+    def draw(k_max: int):
+        order = _random_valid_order(valid, generator)[:, : min(k_max, W)]
+        count = _uniform_count(n_valid.clamp(max=k_max), generator)
+        keep = torch.arange(order.shape[1], device=values.device)[None, :] < count[:, None]
+        idx = order
+        return (
+            phase.gather(1, idx),
+            values.gather(1, idx[..., None].expand(-1, -1, D)),
+            keep,
+        )
+
+    c_phase, c_values, c_valid = draw(n_max)
+    t_phase, t_values, t_valid = draw(m_max)
+
+    mask = torch.ones_like(c_values)
+    if partial_obs_prob > 0 and D > 1:
+        bits = torch.rand(c_values.shape, generator=generator, device=values.device) < 0.5
+        # Guarantee a non-empty subset: force one random dim on.
+        forced = torch.randint(D, c_values.shape[:2], generator=generator, device=values.device)
+        bits = bits | F.one_hot(forced, D).bool()
+        partial = torch.rand(c_values.shape[:2], generator=generator, device=values.device) < partial_obs_prob
+        mask = torch.where(partial[..., None], bits.float(), mask)
+
+    context = Context(c_phase, c_values, mask, c_valid, episodes.task_params)
+    return context, Targets(t_phase, t_values, t_valid)
+
+
+# --------------------------------------------------------------------------------------------------------
+# 2. The model
+# --------------------------------------------------------------------------------------------------------
+
+
+def mlp(in_dim: int, widths: tuple[int, ...]) -> nn.Sequential:
+    """Linear layers with ReLU between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i, w in enumerate(widths):
+        layers.append(nn.Linear(in_dim, w))
+        if i < len(widths) - 1:
+            layers.append(nn.ReLU())
+        in_dim = w
+    return nn.Sequential(*layers)
+
+
+class CNMP(nn.Module):
+    """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch)."""
+
+    def __init__(
+        self,
+        sm_dim: int,
+        task_dim: int = 0,
+        encoder_layers: tuple[int, ...] = (128, 128, 128),
+        decoder_layers: tuple[int, ...] = (128, 128, 128),
+        min_std: float = 0.01,
+    ):
+        super().__init__()
+        self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
+        self.encoder = mlp(1 + task_dim + 2 * sm_dim, tuple(encoder_layers))
+        self.decoder = mlp(1 + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+
+    def _with_task(self, parts: list[Tensor], task_params: Tensor | None, n: int) -> Tensor:
+        if self.task_dim:
+            if task_params is None:
+                raise ValueError(f"this CNMP was trained with {self.task_dim} task parameters γ; none given")
+            if task_params.shape[-1] != self.task_dim:
+                raise ValueError(
+                    f"task parameters γ have {task_params.shape[-1]} dims, the model expects {self.task_dim}"
+                )
+            parts.insert(1, task_params[:, None, :].expand(-1, n, -1))
+        return torch.cat(parts, dim=-1)
+
+    def encode(self, context: Context) -> Tensor:
+        """r_i = E(t_i, γ, SM_i ⊙ mask_i, mask_i): one representation per observation, [B, N, R]."""
+        x = self._with_task(
+            [context.phase[..., None], context.values * context.mask, context.mask],
+            context.task_params,
+            context.phase.shape[1],
+        )
+        return self.encoder(x)
+
+    @staticmethod
+    def aggregate(r_i: Tensor, valid: Tensor) -> Tensor:
+        """r = mean of the valid r_i, [B, R] (order- and padding-invariant)."""
+        w = valid.to(r_i.dtype)[..., None]
+        return (r_i * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)
+
+    def decode(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(μ, σ) = Q(t_q, γ, r) for every query phase, each [B, M, D]; σ = min_std + softplus(.)."""
+        m = query_phase.shape[1]
+        x = self._with_task([query_phase[..., None], r[:, None, :].expand(-1, m, -1)], task_params, m)
+        out = self.decoder(x)
+        mean, raw = out.split(self.sm_dim, dim=-1)
+        return mean, self.min_std + F.softplus(raw)
+
+    def condition(self, context: Context) -> Tensor:
+        """The representation r of a context (encode + aggregate)."""
+        return self.aggregate(self.encode(context), context.valid)
+
+    def forward(self, context: Context, query_phase: Tensor) -> tuple[Tensor, Tensor]:
+        return self.decode(self.condition(context), query_phase, context.task_params)
+
+    @staticmethod
+    def nll(mean: Tensor, std: Tensor, targets: Targets) -> Tensor:
+        """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries."""
+        per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
+        per_query = per_dim.sum(dim=-1)
+        w = targets.valid.to(per_query.dtype)
+        return (per_query * w).sum() / w.sum().clamp(min=1.0)
+
+    def training_loss(
+        self,
+        episodes: Episodes,
+        n_max: int,
+        m_max: int,
+        partial_obs_prob: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Tensor, dict]:
+        """One training step's loss: sample observations and queries from each episode, then the NLL."""
+        context, targets = sample_context_and_targets(episodes, n_max, m_max, partial_obs_prob, generator)
+        mean, std = self(context, targets.phase)
+        loss = self.nll(mean, std, targets)
+        with torch.no_grad():
+            w = targets.valid[..., None].to(mean.dtype)
+            mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
+            mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
+        return loss, {"nll": loss.item(), "mae": mae.item(), "std": mean_std.item()}
+
+
+# --------------------------------------------------------------------------------------------------------
+# 3. The LeRobot policy
+# --------------------------------------------------------------------------------------------------------
+
+
+def check_finite(name: str, x: Tensor) -> None:
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains NaN or infinite values")
+
+
+class CNMPPolicy(PreTrainedPolicy):
+    """CNMP as a LeRobot policy.
+
+    Training (``forward``): each batch item is a window of one demonstration's ``action`` sequence
+    (``action_delta_indices``) with ``action_is_pad``; the phase of each entry is frame / (T - 1), from the
+    dataset's episode table (given by ``lerobot-train``) or from ``action_phase`` when the batch has it.
+
+    Execution (``select_action``): per env, the policy keeps a phase τ (0 after ``reset``). Each step it
+    conditions on the episode's conditions (``observation.environment_state``) and, with
+    ``state_feedback``, on the sensed state, predicts SM(τ) and returns it as the action, then advances
+    τ by 1 / (demo_length - 1). The sensed state at step k is what the action of step k - 1 commanded, so
+    it enters the context at phase τ - Δ.
+    """
+
+    config_class = CNMPConfig
+    name = "cnmp"
+
+    def __init__(self, config: CNMPConfig, dataset_meta=None, **kwargs):
+        if not isinstance(config, CNMPConfig):
+            raise TypeError(
+                f"CNMPPolicy needs a CNMPConfig; got {type(config).__name__} (a checkpoint of another policy type?)"
+            )
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.model = CNMP(
+            sm_dim=config.sm_dim,
+            task_dim=config.task_dim,
+            encoder_layers=config.encoder_layers,
+            decoder_layers=config.decoder_layers,
+            min_std=config.min_std,
+        )
+        self.register_buffer(
+            "window_offsets", torch.tensor(config.action_delta_indices, dtype=torch.long), persistent=False
+        )
+        # Episode table of the training dataset (absolute index of frame 0, length); not saved.
+        self.register_buffer("episode_from", torch.zeros(0, dtype=torch.long), persistent=False)
+        self.register_buffer("episode_length", torch.zeros(0, dtype=torch.long), persistent=False)
+        if dataset_meta is not None:
+            self.set_episode_table(dataset_meta)
+        self.reset()
+
+    @classmethod
+    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
+        """Load weights strictly: a checkpoint of another CNMP configuration is an error, not a silent
+        partial load."""
+        try:
+            return super()._load_as_safetensor(model, model_file, map_location, strict=True)
+        except RuntimeError as e:
+            raise ValueError(
+                f"the weights in {model_file} do not fit this CNMP configuration (layer sizes, SM or γ dims "
+                f"differ): {e}"
+            ) from e
+
+    # ---- training -------------------------------------------------------------------------------------
+
+    def set_episode_table(self, dataset_meta) -> None:
+        """Read each episode's first absolute index and length from LeRobot dataset metadata."""
+        episodes = dataset_meta.episodes
+        ep_index = np.asarray(episodes["episode_index"], dtype=np.int64)
+        size = int(ep_index.max()) + 1 if len(ep_index) else 0
+        frm = np.zeros(size, dtype=np.int64)
+        length = np.zeros(size, dtype=np.int64)
+        frm[ep_index] = np.asarray(episodes["dataset_from_index"], dtype=np.int64)
+        length[ep_index] = np.asarray(episodes["length"], dtype=np.int64)
+        longest = int(length.max()) if size else 0
+        if longest > self.config.max_episode_length:
+            raise ValueError(
+                f"the dataset has an episode of {longest} frames but max_episode_length is "
+                f"{self.config.max_episode_length}: set --policy.max_episode_length={longest} or more"
+            )
+        if size and int(length[ep_index].min()) < 2:
+            raise ValueError("every demonstration needs at least 2 frames to define a phase")
+        self.episode_from = torch.from_numpy(frm).to(self.episode_from.device)
+        self.episode_length = torch.from_numpy(length).to(self.episode_length.device)
+        if self.config.demo_length is None and size:
+            self.config.demo_length = int(np.median(length[ep_index]))
+
+    def episodes_from_batch(self, batch: dict[str, Tensor]) -> Episodes:
+        """A ``lerobot-train`` batch (or an in-memory one with ``action_phase``) as :class:`Episodes`."""
+        if ACTION not in batch:
+            raise KeyError(f"CNMP training batches need {ACTION!r}; got keys {sorted(batch)}")
+        values = batch[ACTION]
+        if values.ndim != 3 or values.shape[-1] != self.config.sm_dim:
+            raise ValueError(
+                f"{ACTION!r} must be a window [batch, frames, {self.config.sm_dim}], got {tuple(values.shape)}; "
+                "train with the config's action_delta_indices"
+            )
+        pad = batch.get(f"{ACTION}_is_pad")
+        valid = torch.ones(values.shape[:2], dtype=torch.bool, device=values.device) if pad is None else ~pad
+        if PHASE_KEY in batch:
+            phase = batch[PHASE_KEY].to(values.dtype)
+        else:
+            if self.episode_length.numel() == 0:
+                raise RuntimeError(
+                    "CNMP needs the dataset's episode table to know each frame's phase: build the policy with "
+                    "`dataset_meta=` (lerobot-train does) or put 'action_phase' in the batch"
+                )
+            if values.shape[1] != self.window_offsets.numel():
+                raise ValueError(
+                    f"{ACTION!r} window has {values.shape[1]} frames but the config's action_delta_indices has "
+                    f"{self.window_offsets.numel()}"
+                )
+            ep = batch["episode_index"].long().reshape(-1)
+            frame = batch["index"].long().reshape(-1) - self.episode_from[ep]
+            length = self.episode_length[ep]
+            frames = frame[:, None] + self.window_offsets[None, :]
+            phase = frames.to(values.dtype) / (length[:, None] - 1).to(values.dtype)
+        valid = valid & (phase >= 0) & (phase <= 1)
+        check_finite(ACTION, torch.where(valid[..., None], values, torch.zeros_like(values)))
+        return Episodes(values, phase.clamp(0, 1), valid, self._task_params(batch))
+
+    def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
+        c = self.config
+        return self.model.training_loss(
+            self.episodes_from_batch(batch), c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator
+        )
+
+    def get_optim_params(self) -> dict:
+        return self.parameters()
+
+    # ---- execution ------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Restart the phase of every env (called by lerobot-eval at each episode start)."""
+        self._phase: Tensor | None = None
+
+    @property
+    def phase_step(self) -> float:
+        if self.config.demo_length is None:
+            raise RuntimeError(
+                "demo_length is unknown: train on a dataset (it is set from the episode lengths) or set "
+                "--policy.demo_length"
+            )
+        return 1.0 / (self.config.demo_length - 1)
+
+    def _task_params(self, batch: dict[str, Tensor]) -> Tensor | None:
+        if not self.config.task_dim:
+            return None
+        if TASK_PARAMS not in batch:
+            raise KeyError(f"this CNMP is conditioned on task parameters: the batch needs {TASK_PARAMS!r}")
+        g = batch[TASK_PARAMS]
+        g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]  # a window of γ: all frames are equal
+        check_finite(TASK_PARAMS, g)
+        return g
+
+    def execution_context(self, batch: dict[str, Tensor], phase: Tensor) -> Context:
+        """Conditions from ``environment_state`` plus (with ``state_feedback``) the sensed state at τ - Δ."""
+        d = self.config.sm_dim
+        phases, values, masks, valids = [], [], [], []
+        if OBS_ENV_STATE in batch and self.config.max_conditions:
+            env = batch[OBS_ENV_STATE]
+            check_finite(OBS_ENV_STATE, env)
+            present, c_phase, c_values, c_mask = decode_conditions(env, d)
+            given = present > 0.5
+            if bool(((c_phase < 0) | (c_phase > 1))[given].any()):
+                raise ValueError("a condition in environment_state has a phase outside [0, 1]")
+            phases.append(c_phase)
+            values.append(c_values)
+            masks.append(c_mask)
+            valids.append(given & (c_mask.sum(-1) > 0))
+        if self.config.state_feedback:
+            if OBS_STATE not in batch:
+                raise KeyError(f"state_feedback needs {OBS_STATE!r} in the observation")
+            state = batch[OBS_STATE]
+            if state.shape[-1] != d:
+                raise ValueError(f"{OBS_STATE!r} has {state.shape[-1]} dims, the SM has {d}")
+            check_finite(OBS_STATE, state)
+            phases.append((phase - self.phase_step).clamp(min=0.0)[:, None])
+            values.append(state[:, None, :])
+            masks.append(torch.ones_like(state)[:, None, :])
+            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+        if not phases:
+            raise ValueError(
+                "nothing to condition on: the observation has no environment_state conditions and "
+                "state_feedback is off"
+            )
+        valid = torch.cat(valids, dim=1)
+        if not bool(valid.any(dim=1).all()):
+            raise ValueError("an env in the batch has no condition to condition on (empty context)")
+        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._task_params(batch))
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """The SM predicted at the current phase, [B, 1, D] (the phase is not advanced)."""
+        ref = batch[OBS_STATE] if OBS_STATE in batch else batch[OBS_ENV_STATE]
+        n_envs = ref.shape[0]
+        if self._phase is None or self._phase.shape[0] != n_envs:
+            self._phase = torch.zeros(n_envs, device=ref.device, dtype=ref.dtype)
+        context = self.execution_context(batch, self._phase)
+        mean, _ = self.model(context, self._phase[:, None])
+        return mean
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """Condition, predict SM(τ) as the action, advance τ by one step (each env separately)."""
+        action = self.predict_action_chunk(batch)[:, 0]
+        self._phase = (self._phase + self.phase_step).clamp(max=1.0)
+        return action
