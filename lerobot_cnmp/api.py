@@ -18,9 +18,9 @@ import torch
 from tqdm.auto import trange
 
 from lerobot.configs import FeatureType, PolicyFeature
-from lerobot.utils.constants import ACTION
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_cnmp.conditions import Condition
+from lerobot_cnmp.conditions import Condition, layout_size
 from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
 from lerobot_cnmp.modeling_cnmp import PHASE_KEY, CNMPPolicy, Context
 
@@ -55,8 +55,13 @@ def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class CNMPModel:
     """A CNMP in memory: ``fit``, ``predict``, ``save`` / ``load``. Works in the data's own units."""
 
-    def __init__(self, config: CNMPConfig | None = None, device: str = "cpu", **overrides):
+    def __init__(
+        self, config: CNMPConfig | None = None, device: str = "cpu", max_conditions: int = 4, **overrides
+    ):
+        """``max_conditions``: condition slots of ``observation.environment_state`` a saved checkpoint
+        declares, so that it runs in a CNMP env (``lerobot-eval``) as a ``lerobot-train`` one does."""
         self.config = config
+        self.max_conditions = max_conditions
         self.overrides = overrides
         self.device = device
         self.policy: CNMPPolicy | None = None
@@ -68,9 +73,13 @@ class CNMPModel:
         cfg = self.config or CNMPConfig(device=self.device, **self.overrides)
         cfg.device = self.device
         cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(sm_dim,))}
-        cfg.input_features = (
-            {TASK_PARAMS: PolicyFeature(type=FeatureType.STATE, shape=(task_dim,))} if task_dim else {}
-        )
+        # The execution features a CNMP env provides: sensed SM state and condition slots.
+        cfg.input_features = {
+            OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(sm_dim,)),
+            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(layout_size(sm_dim, self.max_conditions),)),
+        }
+        if task_dim:
+            cfg.input_features[TASK_PARAMS] = PolicyFeature(type=FeatureType.STATE, shape=(task_dim,))
         if cfg.demo_length is None:
             cfg.demo_length = demo_length
         self.config = cfg
@@ -117,6 +126,8 @@ class CNMPModel:
         policy = self.policy
         policy.train()
         optim = self.config.get_optimizer_preset().build(policy.get_optim_params())
+        sched_cfg = self.config.get_scheduler_preset()
+        sched = None if sched_cfg is None else sched_cfg.build(optim, steps)
         clip = self.config.optimizer_grad_clip_norm
         self.history: list[dict] = []
         bar = trange(steps, desc="CNMP fit", disable=not progress)
@@ -130,6 +141,8 @@ class CNMPModel:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
             optim.step()
+            if sched is not None:
+                sched.step()
             if step % 50 == 0 or step == steps - 1:
                 self.history.append({"step": step, **info})
                 bar.set_postfix(nll=f"{info['nll']:.3f}", mae=f"{info['mae']:.3f}")

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
-from lerobot.optim import AdamConfig
+from lerobot.optim import AdamConfig, CosineDecayWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 TASK_PARAMS = "observation.task_params"
@@ -34,11 +34,18 @@ class CNMPConfig(PreTrainedConfig):
     Args:
         encoder_layers: Widths of the encoder E's layers; the last is the size of the representation r.
         decoder_layers: Hidden widths of the query network Q (its output layer, 2 x SM dim, is added).
+        phase_frequencies: K > 0 adds sin/cos(k·π·t), k = 1..K, to the phase input of E and Q (Fourier
+            features, for sharper timing); 0 feeds the raw phase t only, as in the paper.
         min_std: Floor of the predicted σ (normalized units): σ = min_std + softplus(raw).
         n_max_context: Most observations sampled from a demonstration per training sample (n ~ U{1..n_max}).
         m_max_targets: Most query points per training sample (m ~ U{1..m_max}); the paper uses 1.
+        context_in_targets: Also use the sampled observations as queries (as the CNPs of Garnelo et al. do),
+            which trains the model to pass through its conditions. The paper draws queries independently.
         partial_obs_prob: Probability that a sampled observation constrains only a random non-empty subset
             of the SM dimensions, so the model can be conditioned on any subset of dimensions.
+        draws_per_sample: Independent (observations, queries) draws made from each loaded episode window per
+            step. The batch the loss sees is batch_size x draws_per_sample draws; with ``lerobot-train`` this
+            multiplies the training signal per loaded sample, which is the costly part on CPU.
         max_episode_length: Longest demonstration (frames) the stock ``lerobot-train`` window must cover.
         window_size: Number of frame offsets, spread over [-(max_episode_length-1), max_episode_length-1],
             that ``lerobot-train`` loads per sample (``action_delta_indices``). Each sample then sees about
@@ -49,19 +56,31 @@ class CNMPConfig(PreTrainedConfig):
             step. None: taken from the training dataset (median episode length) when training starts.
         state_feedback: At every control step, condition on the current sensed state as well as on the
             episode's conditions (the paper's execution loop). False: conditions only.
+        condition_on_start: Keep the state sensed at the first step after ``reset()`` as a condition at
+            t = 0 for the whole episode (the start of the movement, as in the paper's Fig. 2).
         optimizer_lr: Adam learning rate (the paper: 1e-4 with batch 1; batched training tolerates more).
         optimizer_grad_clip_norm: Gradient clipping used by ``lerobot-train``.
+        scheduler_decay_lr: Cosine-decay the learning rate from ``optimizer_lr`` to this value over the whole
+            run (``--steps``); None keeps it constant (the paper).
+
+    The paper's own settings, for reproduction: ``encoder_layers=(128, 128)``, ``decoder_layers=(128, 128)``,
+    ``n_max_context=5``, ``m_max_targets=1``, ``context_in_targets=false``, ``partial_obs_prob=0``,
+    ``optimizer_lr=1e-4``, ``scheduler_decay_lr=null`` and batch size 1.
     """
 
     # Network (paper: MLPs of 128 units).
     encoder_layers: tuple[int, ...] = (128, 128, 128)
     decoder_layers: tuple[int, ...] = (128, 128, 128)
     min_std: float = 0.01
+    phase_frequencies: int = 0
 
     # Training-step sampling.
     n_max_context: int = 8
     m_max_targets: int = 16
+    context_in_targets: bool = True
     partial_obs_prob: float = 0.25
+
+    draws_per_sample: int = 1
 
     # Stock lerobot-train data window.
     max_episode_length: int = 200
@@ -73,11 +92,13 @@ class CNMPConfig(PreTrainedConfig):
     # Execution.
     demo_length: int | None = None
     state_feedback: bool = True
+    condition_on_start: bool = True
 
     # Optimizer.
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 0.0
     optimizer_grad_clip_norm: float = 10.0
+    scheduler_decay_lr: float | None = 1e-5
 
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
@@ -96,6 +117,8 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"encoder_layers must be non-empty positive widths, got {self.encoder_layers}")
         if min(self.decoder_layers, default=1) < 1:
             raise ValueError(f"decoder_layers must be positive widths, got {self.decoder_layers}")
+        if self.phase_frequencies < 0:
+            raise ValueError(f"phase_frequencies must be >= 0, got {self.phase_frequencies}")
         if not self.min_std > 0:
             raise ValueError(f"min_std must be > 0, got {self.min_std}")
         if self.n_max_context < 1 or self.m_max_targets < 1:
@@ -104,6 +127,8 @@ class CNMPConfig(PreTrainedConfig):
             )
         if not 0.0 <= self.partial_obs_prob <= 1.0:
             raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
+        if self.draws_per_sample < 1:
+            raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
         if self.max_episode_length < 2:
             raise ValueError(f"max_episode_length must be >= 2, got {self.max_episode_length}")
         if self.window_size < 2:
@@ -142,8 +167,13 @@ class CNMPConfig(PreTrainedConfig):
             grad_clip_norm=self.optimizer_grad_clip_norm,
         )
 
-    def get_scheduler_preset(self) -> None:
-        return None
+    def get_scheduler_preset(self) -> CosineDecayWithWarmupSchedulerConfig | None:
+        if self.scheduler_decay_lr is None:
+            return None
+        # A decay horizon longer than any run: LeRobot rescales it to the run's --steps.
+        return CosineDecayWithWarmupSchedulerConfig(
+            num_warmup_steps=0, num_decay_steps=10**9, peak_lr=self.optimizer_lr, decay_lr=self.scheduler_decay_lr
+        )
 
     def validate_features(self) -> None:
         if self.action_feature is None:

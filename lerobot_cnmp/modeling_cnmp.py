@@ -46,6 +46,11 @@ class Episodes:
     valid: Tensor  # [B, W] bool
     task_params: Tensor | None = None  # [B, G]
 
+    def repeat(self, k: int) -> Episodes:
+        """Each episode k times (for k independent draws from it)."""
+        rep = lambda x: None if x is None else x.repeat_interleave(k, dim=0)  # noqa: E731
+        return Episodes(rep(self.values), rep(self.phase), rep(self.valid), rep(self.task_params))
+
 
 @dataclass
 class Context:
@@ -89,10 +94,12 @@ def sample_context_and_targets(
     m_max: int,
     partial_obs_prob: float = 0.0,
     generator: torch.Generator | None = None,
+    context_in_targets: bool = False,
 ) -> tuple[Context, Targets]:
     """Sample, per episode, n ~ U{1..min(n_max, #valid)} observations and m ~ U{1..min(m_max, #valid)}
-    queries among its valid entries. With probability ``partial_obs_prob`` an observation constrains only
-    a random non-empty subset of the SM dimensions."""
+    queries among its valid entries (plus the n observations themselves with ``context_in_targets``).
+    With probability ``partial_obs_prob`` an observation constrains only a random non-empty subset of the
+    SM dimensions."""
     values, phase, valid = episodes.values, episodes.phase, episodes.valid
     B, W, D = values.shape  # noqa: N806
     n_valid = valid.sum(dim=1)
@@ -123,6 +130,8 @@ def sample_context_and_targets(
         mask = torch.where(partial[..., None], bits.float(), mask)
 
     context = Context(c_phase, c_values, mask, c_valid, episodes.task_params)
+    if context_in_targets:
+        t_phase, t_values, t_valid = (torch.cat(p, 1) for p in ((c_phase, t_phase), (c_values, t_values), (c_valid, t_valid)))
     return context, Targets(t_phase, t_values, t_valid)
 
 
@@ -152,11 +161,24 @@ class CNMP(nn.Module):
         encoder_layers: tuple[int, ...] = (128, 128, 128),
         decoder_layers: tuple[int, ...] = (128, 128, 128),
         min_std: float = 0.01,
+        phase_frequencies: int = 0,
     ):
         super().__init__()
         self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
-        self.encoder = mlp(1 + task_dim + 2 * sm_dim, tuple(encoder_layers))
-        self.decoder = mlp(1 + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+        self.register_buffer(
+            "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
+        )
+        t_dim = 1 + 2 * phase_frequencies
+        self.encoder = mlp(t_dim + task_dim + 2 * sm_dim, tuple(encoder_layers))
+        self.decoder = mlp(t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+
+    def phase_features(self, t: Tensor) -> Tensor:
+        """[..., 1 + 2K]: t itself, plus sin / cos of k·π·t for k = 1..K (none by default, as in the paper)."""
+        t = t[..., None]
+        if self.frequencies.numel() == 0:
+            return t
+        angles = t * self.frequencies
+        return torch.cat([t, angles.sin(), angles.cos()], dim=-1)
 
     def _with_task(self, parts: list[Tensor], task_params: Tensor | None, n: int) -> Tensor:
         if self.task_dim:
@@ -172,7 +194,7 @@ class CNMP(nn.Module):
     def encode(self, context: Context) -> Tensor:
         """r_i = E(t_i, γ, SM_i ⊙ mask_i, mask_i): one representation per observation, [B, N, R]."""
         x = self._with_task(
-            [context.phase[..., None], context.values * context.mask, context.mask],
+            [self.phase_features(context.phase), context.values * context.mask, context.mask],
             context.task_params,
             context.phase.shape[1],
         )
@@ -187,7 +209,7 @@ class CNMP(nn.Module):
     def decode(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(μ, σ) = Q(t_q, γ, r) for every query phase, each [B, M, D]; σ = min_std + softplus(.)."""
         m = query_phase.shape[1]
-        x = self._with_task([query_phase[..., None], r[:, None, :].expand(-1, m, -1)], task_params, m)
+        x = self._with_task([self.phase_features(query_phase), r[:, None, :].expand(-1, m, -1)], task_params, m)
         out = self.decoder(x)
         mean, raw = out.split(self.sm_dim, dim=-1)
         return mean, self.min_std + F.softplus(raw)
@@ -214,9 +236,12 @@ class CNMP(nn.Module):
         m_max: int,
         partial_obs_prob: float = 0.0,
         generator: torch.Generator | None = None,
+        context_in_targets: bool = False,
     ) -> tuple[Tensor, dict]:
         """One training step's loss: sample observations and queries from each episode, then the NLL."""
-        context, targets = sample_context_and_targets(episodes, n_max, m_max, partial_obs_prob, generator)
+        context, targets = sample_context_and_targets(
+            episodes, n_max, m_max, partial_obs_prob, generator, context_in_targets
+        )
         mean, std = self(context, targets.phase)
         loss = self.nll(mean, std, targets)
         with torch.no_grad():
@@ -245,7 +270,8 @@ class CNMPPolicy(PreTrainedPolicy):
 
     Execution (``select_action``): per env, the policy keeps a phase τ (0 after ``reset``). Each step it
     conditions on the episode's conditions (``observation.environment_state``) and, with
-    ``state_feedback``, on the sensed state, predicts SM(τ) and returns it as the action, then advances
+    ``state_feedback``, on the sensed state (and, with ``condition_on_start``, on the state sensed at the
+    first step, at t = 0), predicts SM(τ) and returns it as the action, then advances
     τ by 1 / (demo_length - 1). The sensed state at step k is what the action of step k - 1 commanded, so
     it enters the context at phase τ - Δ.
     """
@@ -267,6 +293,7 @@ class CNMPPolicy(PreTrainedPolicy):
             encoder_layers=config.encoder_layers,
             decoder_layers=config.decoder_layers,
             min_std=config.min_std,
+            phase_frequencies=config.phase_frequencies,
         )
         self.register_buffer(
             "window_offsets", torch.tensor(config.action_delta_indices, dtype=torch.long), persistent=False
@@ -350,8 +377,16 @@ class CNMPPolicy(PreTrainedPolicy):
 
     def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         c = self.config
+        episodes = self.episodes_from_batch(batch)
+        if c.draws_per_sample > 1:
+            episodes = episodes.repeat(c.draws_per_sample)
         return self.model.training_loss(
-            self.episodes_from_batch(batch), c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator
+            episodes,
+            c.n_max_context,
+            c.m_max_targets,
+            c.partial_obs_prob,
+            generator,
+            c.context_in_targets,
         )
 
     def get_optim_params(self) -> dict:
@@ -362,6 +397,7 @@ class CNMPPolicy(PreTrainedPolicy):
     def reset(self) -> None:
         """Restart the phase of every env (called by lerobot-eval at each episode start)."""
         self._phase: Tensor | None = None
+        self._start: Tensor | None = None  # state sensed at the first step (condition_on_start)
 
     @property
     def phase_step(self) -> float:
@@ -397,13 +433,21 @@ class CNMPPolicy(PreTrainedPolicy):
             values.append(c_values)
             masks.append(c_mask)
             valids.append(given & (c_mask.sum(-1) > 0))
-        if self.config.state_feedback:
+        if self.config.state_feedback or self.config.condition_on_start:
             if OBS_STATE not in batch:
-                raise KeyError(f"state_feedback needs {OBS_STATE!r} in the observation")
+                raise KeyError(f"state_feedback and condition_on_start need {OBS_STATE!r} in the observation")
             state = batch[OBS_STATE]
             if state.shape[-1] != d:
                 raise ValueError(f"{OBS_STATE!r} has {state.shape[-1]} dims, the SM has {d}")
             check_finite(OBS_STATE, state)
+        if self.config.condition_on_start:
+            if self._start is None or self._start.shape[0] != state.shape[0]:
+                self._start = state.clone()
+            phases.append(torch.zeros_like(phase)[:, None])
+            values.append(self._start[:, None, :])
+            masks.append(torch.ones_like(state)[:, None, :])
+            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+        if self.config.state_feedback:
             phases.append((phase - self.phase_step).clamp(min=0.0)[:, None])
             values.append(state[:, None, :])
             masks.append(torch.ones_like(state)[:, None, :])

@@ -134,8 +134,8 @@ def test_task_parameters_are_used():
     tau = np.linspace(0, 1, 40)
     gam = np.linspace(-1, 1, 9)[:, None]
     demos = np.stack([np.stack([tau, g[0] * np.sin(np.pi * tau)], 1) for g in gam])
-    model = CNMPModel(encoder_layers=(64, 64), decoder_layers=(64, 64)).fit(
-        demos, task_params=gam, steps=400, batch_size=16, progress=False
+    model = CNMPModel(encoder_layers=(64, 64), decoder_layers=(64, 64), optimizer_lr=3e-3).fit(
+        demos, task_params=gam, steps=600, batch_size=16, progress=False
     )
     hi, _ = model.predict([0.5], [Condition(0.0, (0.0, 0.0))], task_params=[0.75])
     lo, _ = model.predict([0.5], [Condition(0.0, (0.0, 0.0))], task_params=[-0.75])
@@ -238,7 +238,8 @@ def test_not_a_checkpoint(tmp_path):
 
 @pytest.mark.parametrize(
     "field, value",
-    [("min_std", 0.0), ("n_max_context", 0), ("partial_obs_prob", 1.5), ("window_size", 1), ("demo_length", 1)],
+    [("min_std", 0.0), ("n_max_context", 0), ("partial_obs_prob", 1.5), ("window_size", 1), ("demo_length", 1),
+     ("draws_per_sample", 0), ("phase_frequencies", -1)],
 )
 def test_bad_config_values(field, value):
     with pytest.raises(ValueError, match=field):
@@ -250,3 +251,44 @@ def test_window_spans_the_episode():
     idx = cfg.action_delta_indices
     assert idx[0] == -199 and idx[-1] == 199
     assert len(idx) == 32
+
+
+def test_context_in_targets_puts_observations_among_queries():
+    values = torch.randn(4, 20, 2)
+    valid = torch.ones(4, 20, dtype=torch.bool)
+    ep = Episodes(values, torch.rand(4, 20), valid)
+    ctx, tgt = sample_context_and_targets(ep, 3, 5, generator=torch.Generator().manual_seed(1), context_in_targets=True)
+    n = ctx.phase.shape[1]
+    assert tgt.phase.shape[1] == n + 5
+    torch.testing.assert_close(tgt.values[:, :n], ctx.values)
+    assert torch.equal(tgt.valid[:, :n], ctx.valid)
+
+
+def test_draws_per_sample_multiplies_the_draws():
+    ep = Episodes(torch.randn(3, 10, 2), torch.rand(3, 10), torch.ones(3, 10, dtype=torch.bool), torch.randn(3, 1))
+    rep = ep.repeat(4)
+    assert rep.values.shape == (12, 10, 2) and rep.task_params.shape == (12, 1)
+    torch.testing.assert_close(rep.values[4:8], ep.values[1:2].expand(4, -1, -1))
+
+
+def test_phase_fourier_features():
+    net = CNMP(sm_dim=2, encoder_layers=(16,), decoder_layers=(16,), phase_frequencies=3)
+    f = net.phase_features(torch.tensor([[0.0, 0.5]]))
+    assert f.shape == (1, 2, 7)
+    torch.testing.assert_close(f[0, 1, 1:4], torch.sin(torch.pi * torch.tensor([0.5, 1.0, 1.5])))
+    mean, std = net(random_context(b=1, n=2), torch.rand(1, 3))
+    assert mean.shape == (1, 3, 2)
+    assert CNMP(sm_dim=2).phase_features(torch.zeros(1, 2)).shape == (1, 2, 1)  # paper default: raw t
+
+
+def test_cosine_schedule_decays_over_the_run():
+    cfg = CNMPConfig(optimizer_lr=1e-3, scheduler_decay_lr=1e-5)
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=1e-3)
+    sched = cfg.get_scheduler_preset().build(opt, 100)
+    lrs = []
+    for _ in range(100):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] < 2e-5 and all(a >= b for a, b in zip(lrs, lrs[1:]))
+    assert CNMPConfig(scheduler_decay_lr=None).get_scheduler_preset() is None

@@ -1,0 +1,99 @@
+"""Training throughput: the stock ``lerobot-train`` path against the in-memory API, same batch size.
+
+    python bench/train_speed.py [--batch_size 32] [--steps 400]
+
+- API: ``CNMPModel.fit`` on the dataset's demos held in memory (whole episodes, no loader).
+- lerobot-train: the real CLI with ``configs/cnmp_obstacle2d.json`` (its window, workers and model), run
+  as a subprocess; steps/s = 1 / (update time + data wait) from its own log lines, skipping the first
+  (start-up) interval. Both use the config's model and sampling settings.
+Last line: one JSON object with ``train_steps_per_s_api`` and ``train_steps_per_s_lerobot``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "configs" / "cnmp_obstacle2d.json"
+
+
+def api_steps_per_s(policy_fields: dict, batch_size: int, steps: int) -> float:
+    from lerobot_cnmp.api import CNMPModel
+    from lerobot_cnmp.data import load_demos
+
+    demos = load_demos(REPO / "datasets" / "cnmp_obstacle2d")["demos"]
+    keys = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_targets", "partial_obs_prob", "optimizer_lr")
+    model = CNMPModel(**{k: policy_fields[k] for k in keys if k in policy_fields})
+    model.fit(demos, steps=20, batch_size=batch_size, progress=False)  # warm-up
+    t0 = time.perf_counter()
+    model.fit(demos, steps=steps, batch_size=batch_size, progress=False)
+    return steps / (time.perf_counter() - t0)
+
+
+def lerobot_steps_per_s(batch_size: int, steps: int, extra: list[str]) -> dict:
+    log_freq = max(steps // 8, 10)
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [
+            str(Path(sys.executable).parent / "lerobot-train"), f"--config_path={CONFIG}",
+            f"--dataset.root={REPO / 'datasets' / 'cnmp_obstacle2d'}", f"--steps={steps}",
+            f"--batch_size={batch_size}", f"--log_freq={log_freq}", "--save_checkpoint=false",
+            "--policy.device=cpu", f"--output_dir={Path(tmp) / 'out'}", *extra,
+        ]
+        t0 = time.perf_counter()
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp,
+                             env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        wall = time.perf_counter() - t0
+    if out.returncode != 0:
+        raise RuntimeError(f"lerobot-train failed:\n{out.stderr[-3000:]}")
+    rows = re.findall(r"updt_s:([0-9.]+) data_s:([0-9.]+)", out.stdout + out.stderr)
+    if len(rows) < 2:
+        raise RuntimeError("could not read lerobot-train's step timings from its log")
+    updt, data = (np.array([float(r[i]) for r in rows[1:]]) for i in (0, 1))
+    return {"steps_per_s": float(1.0 / (updt + data).mean()), "update_s": float(updt.mean()),
+            "data_wait_s": float(data.mean()), "wall_s_incl_startup": wall}
+
+
+def main() -> dict:
+    cfg = json.loads(CONFIG.read_text())
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--batch_size", type=int, default=cfg["batch_size"])
+    p.add_argument("--steps", type=int, default=400)
+    p.add_argument("--lerobot_args", nargs="*", default=[], help="extra lerobot-train overrides, e.g. --num_workers=0")
+    args = p.parse_args()
+    import torch
+
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    api = api_steps_per_s(cfg["policy"], args.batch_size, args.steps)
+    stock = lerobot_steps_per_s(args.batch_size, args.steps, args.lerobot_args)
+    res = {
+        "train_steps_per_s_api": round(api, 2),
+        "train_steps_per_s_lerobot": round(stock["steps_per_s"], 2),
+        "api_over_lerobot": round(api / stock["steps_per_s"], 2),
+        "lerobot_update_s": round(stock["update_s"], 4),
+        "lerobot_data_wait_s": round(stock["data_wait_s"], 4),
+        "batch_size": args.batch_size,
+        "window_size": cfg["policy"].get("window_size"),
+        "num_workers": cfg.get("num_workers"),
+        "cpus": os.cpu_count(),
+    }
+    print(f"{'path':<16}{'batch':>6}{'steps/s':>10}")
+    print(f"{'in-memory API':<16}{args.batch_size:>6}{api:>10.1f}")
+    print(f"{'lerobot-train':<16}{args.batch_size:>6}{stock['steps_per_s']:>10.1f}"
+          f"   (update {stock['update_s'] * 1e3:.1f} ms + data wait {stock['data_wait_s'] * 1e3:.1f} ms)")
+    print(f"API / lerobot-train = {res['api_over_lerobot']:.2f}x")
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()

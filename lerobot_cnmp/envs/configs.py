@@ -1,0 +1,99 @@
+"""LeRobot ``EnvConfig`` for the CNMP sims (``--env.type=cnmp_obstacle2d``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_cnmp.envs.obstacle2d import (
+    CONDITION_CHOICES,
+    CONTROL_FPS,
+    DEFAULT_MAX_EPISODE_STEPS,
+    ENV_STATE_DIM,
+    PERTURBATION_CHOICES,
+)
+
+OBSTACLE2D_GYM_ID = "cnmp/Obstacle2D-v0"
+
+
+@EnvConfig.register_subclass("cnmp_obstacle2d")
+@dataclass
+class CNMPObstacle2DEnv(EnvConfig):
+    """2D point mass avoiding a round obstacle, over or under it (CNMP paper, Sec. IV-A).
+
+    Fields:
+        task: gymnasium task name (the id is ``cnmp/<task>``).
+        fps: control frequency, Hz (10 physics steps of 2 ms per control step).
+        episode_length: steps before truncation (the nominal demonstrated motion takes 200).
+        conditions: how each episode's conditions are chosen: ``mixed`` (default; one of the next four per
+            episode), ``paper_via``, ``paper_early``, ``paper_end`` (the paper's Fig. 4 conditions) or
+            ``random`` (random family member and condition set).
+        perturbation: ``none``, ``push`` (0.12 displacement away from the obstacle at a random step in
+            [50, 120]) or ``hold`` (held still for 30 steps from a random step in [50, 120]).
+        render_mode: ``rgb_array`` (for eval videos) or ``None``.
+        render_size: side of the rendered square image, pixels.
+        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+    """
+
+    task: str | None = "Obstacle2D-v0"
+    fps: int = CONTROL_FPS
+    episode_length: int = DEFAULT_MAX_EPISODE_STEPS
+    conditions: str = "mixed"
+    perturbation: str = "none"
+    render_mode: str | None = "rgb_array"
+    render_size: int = 256
+    terminate_on_success: bool = True
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(ENV_STATE_DIM,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+        }
+    )
+
+    def __post_init__(self):
+        if self.task != "Obstacle2D-v0":
+            raise ValueError(f"unknown task {self.task!r} for cnmp_obstacle2d; choose 'Obstacle2D-v0'")
+        if self.conditions not in CONDITION_CHOICES:
+            raise ValueError(
+                f"unknown conditions {self.conditions!r}; choose one of {list(CONDITION_CHOICES)}"
+            )
+        if self.perturbation not in PERTURBATION_CHOICES:
+            raise ValueError(
+                f"unknown perturbation {self.perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
+            )
+        if self.render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
+        if self.episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
+        if self.render_size < 16:
+            raise ValueError(f"render_size must be >= 16, got {self.render_size}")
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_cnmp.envs"
+
+    @property
+    def gym_id(self) -> str:
+        return OBSTACLE2D_GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            "conditions": self.conditions,
+            "perturbation": self.perturbation,
+            "render_mode": self.render_mode,
+            "render_size": self.render_size,
+            "terminate_on_success": self.terminate_on_success,
+            "max_episode_steps": self.episode_length,
+        }

@@ -1,0 +1,324 @@
+"""Record scripted demonstrations of a CNMP sim into a LeRobotDataset (v3).
+
+Generic over the sims of :data:`lerobot_cnmp.envs.SIMS`: the sim's ``EnvConfig`` builds the env, its expert
+drives it for ``demo_length`` steps, and each frame stores the observation *before* the action together with
+the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` at its last step).
+
+The dataset is written atomically: into a temporary sibling folder, finalized, given a dataset card, then
+renamed to ``root``.
+
+CLI::
+
+    lerobot-cnmp-record --sim cnmp_obstacle2d --root datasets/cnmp_obstacle2d --n_episodes 32 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from tqdm import tqdm
+
+from lerobot_cnmp.envs import SIMS, SimSpec
+
+class DemoFailedError(RuntimeError):
+    """The scripted expert's demonstration did not succeed."""
+
+
+def _get_spec(sim: str) -> SimSpec:
+    if sim not in SIMS:
+        raise ValueError(f"unknown sim {sim!r}; choose one of {sorted(SIMS)}")
+    return SIMS[sim]
+
+
+def _dataset_features(cfg, spec: SimSpec) -> dict:
+    """LeRobotDataset features from the EnvConfig's features/features_map (float32 vectors, named)."""
+    features = {}
+    for key, feat in cfg.features.items():
+        if len(feat.shape) != 1:
+            raise ValueError(f"feature {key!r} has shape {feat.shape}; the recorder only handles vectors")
+        names = spec.feature_names.get(key) or [f"{key}_{i}" for i in range(feat.shape[0])]
+        if len(names) != feat.shape[0]:
+            raise ValueError(f"{len(names)} names given for feature {key!r} of shape {feat.shape}")
+        features[cfg.features_map[key]] = {"dtype": "float32", "shape": tuple(feat.shape), "names": list(names)}
+    return features
+
+
+def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str) -> str:
+    cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
+    if repo_id != f"lerobot-cnmp/{sim}":
+        cmd += f" --repo_id {repo_id}"
+    spec = SIMS[sim]
+    if conditions != spec.default_conditions:
+        cmd += f" --conditions {conditions}"
+    return cmd
+
+
+def _write_card(
+    path: Path,
+    *,
+    sim: str,
+    spec: SimSpec,
+    cfg,
+    features: dict,
+    repo_id: str,
+    n_episodes: int,
+    seed: int,
+    conditions: str,
+    labels: list[str],
+    kinds: list[str],
+    command: str,
+) -> None:
+    counts = collections.Counter(labels)
+    feat_rows = "\n".join(
+        f"| `{k}` | {v['dtype']} | {list(v['shape'])} | {', '.join(v['names'][:6])}"
+        f"{', ...' if len(v['names']) > 6 else ''} |"
+        for k, v in features.items()
+    )
+    ep_rows = "\n".join(f"| {i} | {seed + i} | {lab} | {kind} |" for i, (lab, kind) in enumerate(zip(labels, kinds)))
+    count_rows = "\n".join(f"| {lab} | {n} |" for lab, n in sorted(counts.items()))
+    card = f"""---
+license: apache-2.0
+task_categories:
+- robotics
+tags:
+- LeRobot
+- cnmp
+- movement-primitives
+- mujoco
+configs:
+- config_name: default
+  data_files: data/*/*.parquet
+---
+
+# {repo_id}
+
+Scripted demonstrations of the `{sim}` sim of
+lerobot-cnmp (Conditional Neural Movement Primitives, Seker et al., RSS 2019),
+in LeRobotDataset v3 format.
+
+## Sim and task family
+
+{spec.description}
+
+Conditions used while recording: `{conditions}`.
+
+## Episodes
+
+{n_episodes} episodes of {spec.demo_length} frames each at {cfg.fps} fps
+({spec.demo_length / cfg.fps:.2f} s per episode), every one checked to succeed (goal reached, conditions
+passed, no obstacle contact).
+
+| mode | episodes |
+|---|---|
+{count_rows}
+
+| episode | reset seed | mode | conditions |
+|---|---|---|---|
+{ep_rows}
+
+## Features
+
+| key | dtype | shape | names |
+|---|---|---|---|
+{feat_rows}
+
+Each frame holds the observation *before* the action and the action commanded at that step (the
+position-servo target). `observation.environment_state` holds the episode's conditions, constant within an
+episode, in the layout of `lerobot_cnmp.conditions` with SM dimension 2 and 4 slots: slot k is
+`[present, phase, x, y, mask_x, mask_y]` (unused slots all zeros; `mask` marks the constrained dims).
+
+## Regenerate
+
+```bash
+{command}
+```
+
+Seed {seed}: episode i is reset with seed {seed} + i, so the same command gives identical data.
+
+## License
+
+Apache-2.0.
+"""
+    path.write_text(card)
+
+
+def record_dataset(
+    sim: str,
+    root: Path | str,
+    n_episodes: int | None = None,
+    seed: int = 0,
+    repo_id: str | None = None,
+    overwrite: bool = False,
+    conditions: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
+
+    Args:
+        sim: a key of :data:`lerobot_cnmp.envs.SIMS`, e.g. ``"cnmp_obstacle2d"``.
+        root: the dataset folder; must not exist unless ``overwrite`` (replaced only once the new one is done).
+        n_episodes: number of demos (the sim's default when None).
+        seed: episode ``i`` is reset with ``seed + i``.
+        repo_id: dataset repo id (default ``lerobot-cnmp/<sim>``).
+        overwrite: replace an existing ``root``.
+        conditions: the env's ``conditions`` option (the sim's recording default when None).
+        progress: show a tqdm progress bar.
+
+    Raises:
+        ValueError: unknown sim, ``n_episodes < 1``.
+        FileExistsError: ``root`` exists and ``overwrite`` is False.
+        DemoFailedError: a demo did not succeed (nothing is left on disk).
+    """
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    spec = _get_spec(sim)
+    n_episodes = spec.default_episodes if n_episodes is None else int(n_episodes)
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    conditions = spec.default_conditions if conditions is None else conditions
+    repo_id = repo_id or f"lerobot-cnmp/{sim}"
+    root = Path(root).expanduser().absolute()
+    if root.exists() and not overwrite:
+        raise FileExistsError(f"dataset folder {root} already exists; pass overwrite=True (--overwrite) to replace it")
+
+    cfg = spec.env_config_cls(
+        conditions=conditions,
+        render_mode=None,
+        terminate_on_success=False,
+        episode_length=spec.demo_length,
+    )
+    features = _dataset_features(cfg, spec)
+    obs_keys = [k for k in cfg.features if cfg.features_map[k] != "action"]
+
+    try:  # the per-episode "Map" bars of `datasets` would drown our own progress bar
+        from datasets.utils import logging as ds_logging
+
+        bars_were_on = ds_logging.is_progress_bar_enabled()
+        ds_logging.disable_progress_bar()
+    except Exception:  # pragma: no cover
+        ds_logging, bars_were_on = None, False
+
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
+    env = ds = None
+    try:
+        env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
+        base = env.unwrapped
+        expert = spec.expert_cls(base, demo_length=spec.demo_length)
+        ds = LeRobotDataset.create(
+            repo_id=repo_id, fps=cfg.fps, features=features, root=tmp_parent / "dataset", use_videos=False
+        )
+        labels, kinds = [], []
+        for i in tqdm(range(n_episodes), desc=f"recording {sim}", unit="episode", disable=not progress):
+            obs, info = env.reset(seed=seed + i, options=spec.reset_options(i, conditions))
+            expert.reset()
+            task_str = getattr(base, "task_description", "") or sim
+            frames = []
+            for k in range(spec.demo_length):
+                action = np.asarray(expert.act(k), dtype=np.float32)
+                frame = {cfg.features_map[key]: np.asarray(obs[key], dtype=np.float32) for key in obs_keys}
+                frame["action"] = action
+                frame["task"] = task_str
+                frames.append(frame)
+                obs, _, terminated, truncated, info = env.step(action)
+                if (terminated or truncated) and k < spec.demo_length - 1:
+                    raise DemoFailedError(
+                        f"episode {i} (seed {seed + i}) of {sim} ended after {k + 1} of {spec.demo_length} steps"
+                    )
+            if not info.get("is_success", False):
+                details = {key: val for key, val in info.items() if key != "is_success"}
+                raise DemoFailedError(
+                    f"the expert's demo failed in episode {i} (seed {seed + i}) of {sim}: {details}"
+                )
+            for frame in frames:
+                ds.add_frame(frame)
+            ds.save_episode()
+            labels.append(spec.episode_label(base))
+            kinds.append(str(getattr(base, "condition_kind", conditions)))
+        ds.finalize()
+        _write_card(
+            tmp_parent / "dataset" / "README.md",
+            sim=sim,
+            spec=spec,
+            cfg=cfg,
+            features=features,
+            repo_id=repo_id,
+            n_episodes=n_episodes,
+            seed=seed,
+            conditions=conditions,
+            labels=labels,
+            kinds=kinds,
+            command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions),
+        )
+        # swap in atomically: the old dataset (if any) is only removed once the new one is complete
+        trash = None
+        if root.exists():
+            trash = tmp_parent / "old"
+            root.rename(trash)
+        (tmp_parent / "dataset").rename(root)
+    except BaseException:
+        if ds is not None:  # close the writer before its folder goes away
+            try:
+                ds.finalize()
+            except Exception:
+                pass
+        raise
+    finally:
+        if env is not None:
+            env.close()
+        shutil.rmtree(tmp_parent, ignore_errors=True)
+        if ds_logging is not None and bars_were_on:
+            ds_logging.enable_progress_bar()
+    return root
+
+
+def _display_path(root: Path) -> Path:
+    try:
+        return root.relative_to(Path.cwd())
+    except ValueError:
+        return root
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="lerobot-cnmp-record",
+        description="Record scripted demonstrations of a CNMP sim into a LeRobotDataset (v3).",
+    )
+    parser.add_argument("--sim", required=True, help=f"sim to record, one of {sorted(SIMS)}")
+    parser.add_argument("--root", required=True, type=Path, help="dataset folder to create")
+    parser.add_argument("--n_episodes", type=int, default=None, help="number of demos (sim default if omitted)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    parser.add_argument("--repo_id", default=None, help="dataset repo id (default lerobot-cnmp/<sim>)")
+    parser.add_argument("--conditions", default=None, help="the env's conditions option (sim default if omitted)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    args = parser.parse_args(argv)
+    if args.sim not in SIMS:
+        parser.error(f"unknown sim {args.sim!r}; choose one of {sorted(SIMS)}")
+    if args.n_episodes is not None and args.n_episodes < 1:
+        parser.error(f"--n_episodes must be >= 1, got {args.n_episodes}")
+    try:
+        root = record_dataset(
+            args.sim,
+            args.root,
+            n_episodes=args.n_episodes,
+            seed=args.seed,
+            repo_id=args.repo_id,
+            overwrite=args.overwrite,
+            conditions=args.conditions,
+        )
+    except (FileExistsError, DemoFailedError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(f"dataset written to {root}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+#!/usr/bin/env bash
+# lerobot-cnmp: one entry point for a fresh machine.
+#   bash run.sh main   set up, build the default dataset if absent, train CNMP with lerobot-train,
+#                      evaluate with lerobot-eval, plot, and print the success rate and file paths
+#   bash run.sh test   set up and run the test suite
+#   bash run.sh setup  only create .venv (Python 3.12) and `pip install -e .[test,bench]`
+set -euo pipefail
+cd "$(dirname "$0")"
+export HF_HUB_OFFLINE=1 MUJOCO_GL=${MUJOCO_GL:-egl} PYTHONUNBUFFERED=1
+VENV=${CNMP_VENV:-.venv}
+PY="$VENV/bin/python"
+
+setup() {
+  if [ ! -x "$PY" ]; then
+    local base=""
+    for cand in python3.12 "pyenv-3.12"; do
+      if [ "$cand" = pyenv-3.12 ] && command -v pyenv >/dev/null 2>&1; then
+        v=$(pyenv versions --bare 2>/dev/null | grep -E '^3\.1[2-9]' | head -n1 || true)
+        [ -n "$v" ] && base="env PYENV_VERSION=$v python" && break
+      elif command -v "$cand" >/dev/null 2>&1; then base="$cand"; break; fi
+    done
+    [ -n "$base" ] || { echo "error: Python >= 3.12 not found (lerobot 0.6.1 needs it)" >&2; exit 1; }
+    echo "== creating $VENV with $($base --version)"
+    $base -m venv "$VENV"
+    "$PY" -m pip install -q --upgrade pip
+  fi
+  if ! "$PY" -c "import lerobot_policy_cnmp, pytest, movement_primitives" >/dev/null 2>&1; then
+    echo "== installing lerobot-cnmp (pip install -e .[test,bench]); a fresh install takes ~4 min"
+    "$PY" -m pip install -q -e ".[test,bench]" 2>&1 | grep -v "^WARNING: Location" || true
+    "$PY" -c "import lerobot_policy_cnmp" || { echo "error: installation failed" >&2; exit 1; }
+  fi
+}
+
+main_job() {
+  setup
+  local out=outputs/main
+  local data=datasets/cnmp_obstacle2d
+  if [ ! -f "$data/meta/info.json" ]; then
+    echo "== building the default dataset ($data)"
+    "$VENV/bin/lerobot-cnmp-record" --sim cnmp_obstacle2d --root "$data"
+  fi
+  rm -rf "$out/train" "$out/eval"
+  echo "== training: lerobot-train --config_path=configs/cnmp_obstacle2d.json"
+  "$VENV/bin/lerobot-train" --config_path=configs/cnmp_obstacle2d.json --policy.device=cpu \
+      --output_dir="$out/train"
+  local ckpt="$out/train/checkpoints/last/pretrained_model"
+  echo "== evaluating: lerobot-eval on cnmp_obstacle2d, 50 episodes"
+  "$VENV/bin/lerobot-eval" --policy.path="$ckpt" --env.type=cnmp_obstacle2d --eval.n_episodes=50 \
+      --eval.batch_size=10 --policy.device=cpu --output_dir="$out/eval" --seed=100000
+  "$VENV/bin/lerobot-cnmp-plot" --checkpoint "$ckpt" --dataset "$data" --out "$out/fig4_cnmp.png"
+  "$PY" - "$out" <<'PYEOF'
+import json, sys, pathlib
+out = pathlib.Path(sys.argv[1])
+info = json.loads((out / "eval" / "eval_info.json").read_text())
+agg = info.get("aggregated", info.get("overall", info))
+print("\n================ lerobot-cnmp main job ================")
+print(f"success rate (lerobot-eval, 50 episodes): {agg['pc_success']:.1f} %")
+print(f"checkpoint : {out / 'train/checkpoints/last/pretrained_model'}")
+print(f"plot       : {out / 'fig4_cnmp.png'}")
+print(f"videos     : {out / 'eval' / 'videos'}")
+PYEOF
+}
+
+run_tests() {
+  setup
+  echo "== pytest"
+  set +e
+  "$PY" -m pytest -q "$@"
+  rc=$?
+  set -e
+  if [ "$rc" -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi
+  exit "$rc"
+}
+
+case "${1:-}" in
+  setup) setup ;;
+  main) main_job ;;
+  test) shift; run_tests "$@" ;;
+  *) echo "usage: bash run.sh {main|test|setup}" >&2; exit 2 ;;
+esac

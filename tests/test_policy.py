@@ -1,0 +1,273 @@
+"""CNMPPolicy with LeRobot: stock batches, processors, execution state, checkpoints, plugin, CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+from lerobot.datasets.factory import resolve_delta_timestamps
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_cnmp.api import load_pretrained, normalizer_stats
+from lerobot_cnmp.conditions import Condition, encode_conditions
+from lerobot_cnmp.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.modeling_cnmp import CNMPPolicy
+from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
+
+REPO = Path(__file__).resolve().parents[1]
+DATASET = REPO / "datasets" / "cnmp_obstacle2d"
+REPO_ID = "lerobot-cnmp/cnmp_obstacle2d"
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def meta():
+    return LeRobotDatasetMetadata(REPO_ID, root=DATASET)
+
+
+def small_config(**kw) -> CNMPConfig:
+    return CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), window_size=12, **kw)
+
+
+@pytest.fixture(scope="module")
+def policy_and_data(meta):
+    cfg = small_config()
+    policy = make_policy(cfg, ds_meta=meta)
+    ds = LeRobotDataset(REPO_ID, root=DATASET, delta_timestamps=resolve_delta_timestamps(cfg, meta))
+    return policy, ds
+
+
+def test_dataset_has_declared_features(meta):
+    assert meta.total_episodes == 64
+    assert meta.features[ACTION]["shape"] == (2,) and meta.features[OBS_STATE]["shape"] == (2,)
+    assert meta.features[OBS_ENV_STATE]["shape"] == (24,)
+    assert set(np.asarray(meta.episodes["length"]).tolist()) == {200}
+    assert (DATASET / "README.md").is_file()
+
+
+def test_stock_batch_phases_match_frames(policy_and_data):
+    """Each window entry's phase is frame / (T - 1), and pads are exactly the frames outside the episode."""
+    policy, ds = policy_and_data
+    items = [ds[i] for i in (0, 57, 199, 200, 12799)]
+    batch = torch.utils.data.default_collate(items)
+    episodes = policy.episodes_from_batch(batch)
+    offsets = torch.tensor(policy.config.action_delta_indices)
+    for b, item in enumerate(items):
+        frames = item["frame_index"] + offsets
+        inside = (frames >= 0) & (frames <= 199)
+        assert torch.equal(episodes.valid[b], inside)
+        torch.testing.assert_close(episodes.phase[b][inside], frames[inside].float() / 199)
+    loss, info = policy.forward(batch)
+    assert loss.ndim == 0 and torch.isfinite(loss) and {"nll", "mae", "std"} <= set(info)
+    loss.backward()
+
+
+def test_forward_rejects_bad_batches(policy_and_data):
+    policy, ds = policy_and_data
+    batch = torch.utils.data.default_collate([ds[3], ds[4]])
+    with pytest.raises(ValueError, match="window"):
+        policy.forward({**batch, ACTION: batch[ACTION][:, 0]})
+    bad = batch[ACTION].clone()
+    bad[~batch[f"{ACTION}_is_pad"]] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        policy.forward({**batch, ACTION: bad})
+    with pytest.raises(KeyError, match="action"):
+        policy.forward({k: v for k, v in batch.items() if k != ACTION})
+    orphan = CNMPPolicy(policy.config)  # no dataset table and no action_phase
+    with pytest.raises(RuntimeError, match="episode table"):
+        orphan.forward(batch)
+
+
+def test_episode_longer_than_window_is_rejected(meta):
+    with pytest.raises(ValueError, match="max_episode_length"):
+        make_policy(small_config(max_episode_length=100), ds_meta=meta)
+
+
+def test_dataset_missing_task_params_is_rejected(meta):
+    with pytest.raises(ValueError, match="observation.task_params"):
+        make_policy(small_config(use_task_params=True), ds_meta=meta)
+
+
+def test_processor_normalizes_sm_inputs_with_action_stats(meta):
+    cfg = small_config()
+    make_policy(cfg, ds_meta=meta)  # sets features
+    pre, post = make_cnmp_pre_post_processors(cfg, meta.stats)
+    mean, std = (np.asarray(meta.stats[ACTION][k], np.float32) for k in ("mean", "std"))
+    cond = encode_conditions([Condition(0.5, (0.5, 0.4)), Condition(1.0, (1.0, 0.1), dims=(1,))], 2, 4)
+    obs = {OBS_STATE: torch.tensor([0.2, -0.1]), OBS_ENV_STATE: torch.from_numpy(cond)}
+    out = pre(obs)
+    torch.testing.assert_close(out[OBS_STATE][0], torch.from_numpy((np.array([0.2, -0.1]) - mean) / std).float(),
+                               atol=1e-5, rtol=1e-5)
+    env = out[OBS_ENV_STATE][0].reshape(4, 6)
+    raw = torch.from_numpy(cond).reshape(4, 6)
+    torch.testing.assert_close(env[:, [0, 1, 4, 5]], raw[:, [0, 1, 4, 5]])  # flags, phase, masks unchanged
+    torch.testing.assert_close(env[0, 2:4], torch.from_numpy((np.array([0.5, 0.4]) - mean) / std).float(),
+                               atol=1e-5, rtol=1e-5)
+    action = post(torch.zeros(1, 2))
+    torch.testing.assert_close(action[0], torch.from_numpy(mean), atol=1e-5, rtol=1e-5)
+
+
+def _obs(n_envs: int, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    cond = np.stack([encode_conditions([Condition(0.5, (0.5, float(rng.uniform(-1, 1))))], 2, 4) for _ in range(n_envs)])
+    return {OBS_STATE: torch.from_numpy(rng.normal(size=(n_envs, 2)).astype(np.float32)),
+            OBS_ENV_STATE: torch.from_numpy(cond)}
+
+
+def test_select_action_phase_per_env_and_reset(policy_and_data):
+    policy, _ = policy_and_data
+    policy.eval()
+    policy.reset()
+    step = 1 / (policy.config.demo_length - 1)
+    assert policy.config.demo_length == 200  # derived from the dataset
+    a = policy.select_action(_obs(3))
+    assert a.shape == (3, 2) and torch.isfinite(a).all()
+    for _ in range(9):
+        policy.select_action(_obs(3))
+    torch.testing.assert_close(policy._phase, torch.full((3,), 10 * step))
+    policy.reset()
+    policy.select_action(_obs(3))
+    torch.testing.assert_close(policy._phase, torch.full((3,), step))
+    # Each env of a batch is conditioned on its own observation: env 1 alone gives env 1's action.
+    policy.reset()
+    many = policy.select_action(_obs(3, seed=5))
+    policy.reset()
+    obs = _obs(3, seed=5)
+    one = policy.select_action({k: v[1:2] for k, v in obs.items()})
+    torch.testing.assert_close(many[1:2], one)
+    # The phase saturates at 1.
+    for _ in range(250):
+        policy.select_action(_obs(3))
+    assert float(policy._phase.max()) == 1.0
+
+
+@pytest.mark.parametrize(
+    "mutate, err, match",
+    [
+        (lambda o: {**o, OBS_ENV_STATE: o[OBS_ENV_STATE][:, :23]}, ValueError, "multiple of the slot size"),
+        (lambda o: {**o, OBS_STATE: torch.full_like(o[OBS_STATE], float("nan"))}, ValueError, "NaN"),
+        (lambda o: {**o, OBS_STATE: o[OBS_STATE][:, :1]}, ValueError, "dims"),
+        (lambda o: {OBS_ENV_STATE: o[OBS_ENV_STATE]}, KeyError, "observation.state"),
+    ],
+)
+def test_select_action_bad_inputs(policy_and_data, mutate, err, match):
+    policy, _ = policy_and_data
+    policy.reset()
+    with pytest.raises(err, match=match):
+        policy.select_action(mutate(_obs(2)))
+
+
+def test_condition_phase_outside_range_is_rejected(policy_and_data):
+    policy, _ = policy_and_data
+    obs = _obs(1)
+    env = obs[OBS_ENV_STATE].clone()
+    env[0, 1] = 1.5
+    policy.reset()
+    with pytest.raises(ValueError, match="outside"):
+        policy.select_action({**obs, OBS_ENV_STATE: env})
+
+
+def test_empty_context_is_rejected(policy_and_data):
+    policy, _ = policy_and_data
+    policy.config.state_feedback = policy.config.condition_on_start = False
+    try:
+        policy.reset()
+        with pytest.raises(ValueError, match="empty context"):
+            policy.select_action({**_obs(1), OBS_ENV_STATE: torch.zeros(1, 24)})
+    finally:
+        policy.config.state_feedback = policy.config.condition_on_start = True
+
+
+def test_programmatic_loading_restores_processors(policy_and_data, meta, tmp_path):
+    """load_pretrained must bring back the checkpoint's statistics (a config-only rebuild has none)."""
+    policy, _ = policy_and_data
+    pre, post = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
+    ckpt = tmp_path / "pretrained_model"
+    policy.save_pretrained(ckpt)
+    pre.save_pretrained(ckpt)
+    post.save_pretrained(ckpt)
+
+    from lerobot.configs.policies import PreTrainedConfig
+
+    naive_cfg = PreTrainedConfig.from_pretrained(ckpt)
+    assert naive_cfg.pretrained_path is None
+    naive_pre, _ = make_pre_post_processors(naive_cfg)
+    naive_stats = {k: v for k, v in normalizer_stats(naive_pre).items() if v}
+    assert ACTION not in naive_stats  # the LeRobot trap this loader avoids
+
+    loaded, lpre, lpost = load_pretrained(ckpt)
+    np.testing.assert_array_equal(normalizer_stats(lpre)[ACTION]["mean"], np.asarray(meta.stats[ACTION]["mean"], np.float32))
+    obs = _obs(2, seed=3)
+    policy.eval()
+    policy.reset()
+    loaded.reset()
+    want = post(policy.select_action(pre(dict(obs))))
+    got = lpost(loaded.select_action(lpre(dict(obs))))
+    assert torch.equal(want, got)  # bit-identical
+
+
+def test_plugin_discovery_in_fresh_process():
+    code = (
+        "from lerobot.utils.import_utils import register_third_party_plugins\n"
+        "register_third_party_plugins()\n"
+        "from lerobot.configs.policies import PreTrainedConfig\n"
+        "from lerobot.envs.configs import EnvConfig\n"
+        "from lerobot.policies.factory import get_policy_class\n"
+        "print(get_policy_class('cnmp').__name__, 'cnmp_obstacle2d' in EnvConfig.get_known_choices())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().splitlines()[-1] == "CNMPPolicy True"
+
+
+def test_lerobot_train_then_eval_smoke(tmp_path):
+    """A few steps of the stock CLI: lerobot-train on the committed dataset, then lerobot-eval on the sim."""
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": "egl"}
+    train = subprocess.run(
+        [str(BIN / "lerobot-train"), f"--config_path={REPO / 'configs' / 'cnmp_obstacle2d.json'}",
+         f"--dataset.root={DATASET}", "--steps=10", "--batch_size=4", "--num_workers=0", "--save_freq=10",
+         "--log_freq=5", "--policy.device=cpu", f"--output_dir={tmp_path / 'train'}"],
+        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
+    )
+    assert train.returncode == 0, train.stderr[-4000:]
+    ckpt = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
+    assert (ckpt / "model.safetensors").is_file() and (ckpt / "config.json").is_file()
+    assert json.loads((ckpt / "config.json").read_text())["demo_length"] == 200
+    ev = subprocess.run(
+        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=cnmp_obstacle2d",
+         "--eval.n_episodes=2", "--eval.batch_size=2", "--policy.device=cpu",
+         f"--output_dir={tmp_path / 'eval'}"],
+        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
+    )
+    assert ev.returncode == 0, ev.stderr[-4000:]
+    info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
+    text = json.dumps(info)
+    assert "pc_success" in text
+
+
+def test_start_and_current_state_enter_the_context(policy_and_data):
+    """After reset the first sensed state is kept as a condition at t = 0; the current state enters at τ - Δ."""
+    policy, _ = policy_and_data
+    policy.reset()
+    first, later = _obs(2, seed=1), _obs(2, seed=2)
+    policy.select_action(first)
+    policy.select_action(later)
+    ctx = policy.execution_context(later, policy._phase)
+    k = policy.config.max_conditions
+    torch.testing.assert_close(ctx.values[:, k], first[OBS_STATE])
+    assert bool((ctx.phase[:, k] == 0).all())
+    torch.testing.assert_close(ctx.values[:, k + 1], later[OBS_STATE])
+    torch.testing.assert_close(ctx.phase[:, k + 1], policy._phase - policy.phase_step)
+    policy.reset()
+    assert policy._start is None and policy._phase is None

@@ -1,0 +1,142 @@
+"""Tests of the generic demonstration recorder (``lerobot-cnmp-record``)."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lerobot_cnmp import record as record_mod
+from lerobot_cnmp.conditions import conditions_from_vector
+from lerobot_cnmp.envs import SIMS
+from lerobot_cnmp.experts.obstacle2d import Obstacle2DExpert
+
+SIM = "cnmp_obstacle2d"
+REPO = "lerobot-cnmp/test_obstacle2d"
+
+
+def _parquet(root: Path) -> pd.DataFrame:
+    files = sorted((root / "data").rglob("*.parquet"))
+    assert files
+    return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("rec") / "ds"
+    out = record_mod.record_dataset(SIM, root, n_episodes=4, seed=0, repo_id=REPO, progress=False)
+    assert out == root.absolute()
+    return root
+
+
+def test_recorded_dataset_loads(recorded):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(REPO, root=recorded)
+    assert ds.meta.total_episodes == 4 and ds.num_episodes == 4
+    assert ds.meta.total_frames == 4 * SIMS[SIM].demo_length
+    assert ds.fps == 50
+    feats = ds.meta.features
+    assert feats["action"]["shape"] in ((2,), [2]) and feats["action"]["names"] == ["x", "y"]
+    assert feats["observation.state"]["names"] == ["x", "y"]
+    assert tuple(feats["observation.environment_state"]["shape"]) == (24,)
+    assert feats["observation.environment_state"]["names"][:6] == [
+        "c0_present", "c0_phase", "c0_x", "c0_y", "c0_mask_x", "c0_mask_y",
+    ]
+    item = ds[0]
+    assert item["action"].shape == (2,) and item["observation.state"].shape == (2,)
+    assert item["observation.environment_state"].shape == (24,)
+    assert item["task"] == "reach the goal around the obstacle"
+
+    df = _parquet(recorded)
+    lengths = df.groupby("episode_index").size()
+    assert list(lengths) == [200] * 4
+    modes = []
+    for ep, g in df.groupby("episode_index"):
+        state = np.stack(g["observation.state"].to_numpy())
+        env_state = np.stack(g["observation.environment_state"].to_numpy())
+        action = np.stack(g["action"].to_numpy())
+        assert (env_state == env_state[0]).all()  # conditions constant within an episode
+        assert conditions_from_vector(env_state[0], sm_dim=2)
+        assert state[0, 0] == pytest.approx(0.0, abs=1e-6)  # starts at x = 0
+        assert state[-1, 0] == pytest.approx(1.0, abs=0.05)  # ends near x = 1
+        # action k is the reference at phase k / (T - 1): the SM trajectory starts at the start state,
+        # and the state sensed at frame k is where action k - 1 sent the servo
+        np.testing.assert_allclose(action[:, 0], np.arange(200) / 199, atol=1e-6)
+        np.testing.assert_allclose(action[0], state[0], atol=1e-6)
+        assert np.abs(state[1:] - action[:-1]).max() < 0.015  # servo tracking lag (measured <= 1.2 cm)
+        modes.append(int(np.sign(state[len(state) // 2, 1])))  # over (+1) or under (-1) at mid-motion
+    assert modes == [1, -1, 1, -1]
+
+    card = (recorded / "README.md").read_text()
+    assert "lerobot-cnmp-record --sim cnmp_obstacle2d" in card and "--seed 0" in card
+    assert "| over | 2 |" in card and "| under | 2 |" in card
+    assert "license" in card.lower()
+    # no temp folders left next to the dataset
+    assert [p.name for p in recorded.parent.iterdir()] == ["ds"]
+
+
+def test_same_seed_identical(recorded, tmp_path):
+    again = record_mod.record_dataset(SIM, tmp_path / "again", n_episodes=4, seed=0, repo_id=REPO, progress=False)
+    a, b = _parquet(recorded), _parquet(again)
+    assert list(a.columns) == list(b.columns)
+    for col in a.columns:
+        va, vb = a[col].to_numpy(), b[col].to_numpy()
+        if va.dtype == object:
+            va, vb = np.stack(va), np.stack(vb)
+        np.testing.assert_array_equal(va, vb, err_msg=col)
+
+
+def test_existing_root_not_overwritten(tmp_path):
+    root = tmp_path / "ds"
+    root.mkdir()
+    (root / "keep.txt").write_text("precious")
+    with pytest.raises(FileExistsError, match="overwrite"):
+        record_mod.record_dataset(SIM, root, n_episodes=1, progress=False)
+    assert [p.name for p in root.iterdir()] == ["keep.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+    # with overwrite the folder is replaced by the new dataset
+    record_mod.record_dataset(SIM, root, n_episodes=1, overwrite=True, progress=False)
+    assert not (root / "keep.txt").exists() and (root / "meta" / "info.json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
+def test_failing_expert_leaves_nothing(tmp_path, monkeypatch):
+    def straight_line(self, step):
+        task = self.env.task
+        tau = min((step + 1) / (self.demo_length - 1), 1.0)
+        return (task.start + tau * (task.goal - task.start)).astype(np.float32)
+
+    monkeypatch.setattr(Obstacle2DExpert, "act", straight_line)
+    root = tmp_path / "ds"
+    # conditions=paper_end (y0 = 0.13): the straight line crosses the obstacle in every episode
+    with pytest.raises(record_mod.DemoFailedError, match="episode 0"):
+        record_mod.record_dataset(SIM, root, n_episodes=2, conditions="paper_end", progress=False)
+    assert not root.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="cnmp_obstacle2d"):
+        record_mod.record_dataset("nope", tmp_path / "x", n_episodes=1)
+    with pytest.raises(ValueError, match="n_episodes"):
+        record_mod.record_dataset(SIM, tmp_path / "x", n_episodes=0)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(SystemExit):
+        record_mod.main(["--sim", "nope", "--root", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        record_mod.main(["--sim", SIM, "--root", str(tmp_path / "x"), "--n_episodes", "0"])
+
+
+def test_cli(tmp_path):
+    assert record_mod.main(["--sim", SIM, "--root", str(tmp_path / "cli"), "--n_episodes", "1", "--seed", "3"]) == 0
+    assert (tmp_path / "cli" / "meta" / "info.json").exists()
+    assert "--seed 3" in (tmp_path / "cli" / "README.md").read_text()
+    assert record_mod.main(["--sim", SIM, "--root", str(tmp_path / "cli"), "--n_episodes", "1"]) == 1
