@@ -13,12 +13,15 @@ PY="$VENV/bin/python"
 setup() {
   if [ ! -x "$PY" ]; then
     local base=""
-    for cand in python3.12 "pyenv-3.12"; do
-      if [ "$cand" = pyenv-3.12 ] && command -v pyenv >/dev/null 2>&1; then
-        v=$(pyenv versions --bare 2>/dev/null | grep -E '^3\.1[2-9]' | head -n1 || true)
-        [ -n "$v" ] && base="env PYENV_VERSION=$v python" && break
-      elif command -v "$cand" >/dev/null 2>&1; then base="$cand"; break; fi
+    for cand in python3.12 python3.13 python3; do  # a pyenv shim exists for every version: run it to know
+      if "$cand" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 12) else 1)' >/dev/null 2>&1; then
+        base="$cand"; break
+      fi
     done
+    if [ -z "$base" ] && command -v pyenv >/dev/null 2>&1; then
+      v=$(pyenv versions --bare 2>/dev/null | grep -E '^3\.1[2-9]\.' | head -n1 || true)
+      [ -n "$v" ] && base="env PYENV_VERSION=$v python"
+    fi
     [ -n "$base" ] || { echo "error: Python >= 3.12 not found (lerobot 0.6.1 needs it)" >&2; exit 1; }
     echo "== creating $VENV with $($base --version)"
     $base -m venv "$VENV"

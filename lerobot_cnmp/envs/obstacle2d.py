@@ -73,7 +73,7 @@ MJCF = f"""
     <material name="grid" texture="grid" texrepeat="8 8"/>
   </asset>
   <worldbody>
-    <camera name="top" pos="0.5 0 1.6" xyaxes="1 0 0 0 1 0" fovy="45"/>
+    <camera name="top" pos="0.5 0 2.0" xyaxes="1 0 0 0 1 0" fovy="45"/>
     <geom name="floor" type="plane" pos="0.5 0 -0.06" size="1.5 1.5 0.01" material="grid"
           contype="0" conaffinity="0"/>
     <geom name="obstacle" type="cylinder" pos="{OBSTACLE_CENTER[0]} {OBSTACLE_CENTER[1]} 0"
@@ -337,12 +337,12 @@ class Obstacle2DEnv(gym.Env):
         self.data.qpos[:2] = task.start
         self.data.qvel[:] = 0.0
         self.data.ctrl[:] = task.start
-        mujoco.mj_forward(self.model, self.data)
+        self._set_markers()
+        mujoco.mj_forward(self.model, self.data)  # after the markers: rendering reads the computed site poses
         self._step = 0
         self._contact = False
         self._cond_min_err = np.full(len(conds), np.inf)
         self._update_progress()
-        self._set_markers()
         return self._obs(), self._info()
 
     def step(self, action):
