@@ -229,19 +229,8 @@ class CNMP(nn.Module):
         w = targets.valid.to(per_query.dtype)
         return (per_query * w).sum() / w.sum().clamp(min=1.0)
 
-    def training_loss(
-        self,
-        episodes: Episodes,
-        n_max: int,
-        m_max: int,
-        partial_obs_prob: float = 0.0,
-        generator: torch.Generator | None = None,
-        context_in_targets: bool = False,
-    ) -> tuple[Tensor, dict]:
-        """One training step's loss: sample observations and queries from each episode, then the NLL."""
-        context, targets = sample_context_and_targets(
-            episodes, n_max, m_max, partial_obs_prob, generator, context_in_targets
-        )
+    def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
+        """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
         mean, std = self(context, targets.phase)
         loss = self.nll(mean, std, targets)
         with torch.no_grad():
@@ -380,14 +369,10 @@ class CNMPPolicy(PreTrainedPolicy):
         episodes = self.episodes_from_batch(batch)
         if c.draws_per_sample > 1:
             episodes = episodes.repeat(c.draws_per_sample)
-        return self.model.training_loss(
-            episodes,
-            c.n_max_context,
-            c.m_max_targets,
-            c.partial_obs_prob,
-            generator,
-            c.context_in_targets,
+        context, targets = sample_context_and_targets(
+            episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets
         )
+        return self.model.training_loss(context, targets)
 
     def get_optim_params(self) -> dict:
         return self.parameters()
