@@ -68,13 +68,13 @@ def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch_size", type=int, default=cfg["batch_size"])
     p.add_argument("--steps", type=int, default=400)
-    p.add_argument("--lerobot_args", nargs="*", default=[], help="extra lerobot-train overrides, e.g. --num_workers=0")
+    p.add_argument("--lerobot_args", default="", help="extra lerobot-train overrides in one string, e.g. \"--num_workers=1\"")
     args = p.parse_args()
     import torch
 
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     api = api_steps_per_s(cfg["policy"], args.batch_size, args.steps)
-    stock = lerobot_steps_per_s(args.batch_size, args.steps, args.lerobot_args)
+    stock = lerobot_steps_per_s(args.batch_size, args.steps, args.lerobot_args.split())
     res = {
         "train_steps_per_s_api": round(api, 2),
         "train_steps_per_s_lerobot": round(stock["steps_per_s"], 2),
@@ -84,6 +84,7 @@ def main() -> dict:
         "batch_size": args.batch_size,
         "window_size": cfg["policy"].get("window_size"),
         "num_workers": cfg.get("num_workers"),
+        "lerobot_overrides": args.lerobot_args,
         "cpus": os.cpu_count(),
     }
     print(f"{'path':<16}{'batch':>6}{'steps/s':>10}")
