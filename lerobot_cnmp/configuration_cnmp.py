@@ -52,12 +52,23 @@ class CNMPConfig(PreTrainedConfig):
             window_size / 2 frames of its episode at random phases. Loading cost is linear in it.
         use_task_params: Condition on γ (``observation.task_params``). None: use it when the dataset has it.
             True: require it (a dataset without it is rejected).
-        demo_length: Frames of a demonstration; execution advances the phase by 1 / (demo_length - 1) per
-            step. None: taken from the training dataset (median episode length) when training starts.
-        state_feedback: At every control step, condition on the current sensed state as well as on the
-            episode's conditions (the paper's execution loop). False: conditions only.
+        demo_length: Frames of a demonstration. None: taken from the training dataset (median episode
+            length) when training starts.
+        online_feedback: The paper's execution loop: every control step, condition on the current sensed SM
+            (``feedback_dims`` of ``observation.state``) besides the episode's conditions, track the
+            prediction with the PD law below, and stop the phase while the tracking error is large.
+            False: replay the trajectory generated at t = 0 (the open-loop baseline; the phase always advances).
+        feedback_dims: SM dimensions fed back and used for the tracking error; None: all.
         condition_on_start: Keep the state sensed at the first step after ``reset()`` as a condition at
             t = 0 for the whole episode (the start of the movement, as in the paper's Fig. 2).
+        phase_step: Phase advance per control step; None: 1 / (demo_length - 1), the demonstrations' pace.
+        phase_stop_threshold: The phase does not advance while the tracking error (max over the fed-back
+            dims of |sensed SM - SM commanded at the previous step|, in action standard deviations) is above
+            this. None: never stop.
+        pd_kp, pd_kd: PD law on the position target: action = s + kp·e + kd·(e - e_prev), e = SM(τ) - s.
+            kp = 1, kd = 0 commands the predicted SM itself.
+        sigma_scaled_gains: Scale kp per dim by sigma_ref / σ (the predicted σ, normalized units): softer
+            where the demonstrations vary more (the paper's compliance proposal), clipped to [kp_min, kp_max].
         optimizer_lr: Adam learning rate (the paper: 1e-4 with batch 1; batched training tolerates more).
         optimizer_grad_clip_norm: Gradient clipping used by ``lerobot-train``.
         scheduler_decay_lr: Cosine-decay the learning rate from ``optimizer_lr`` to this value over the whole
@@ -89,10 +100,19 @@ class CNMPConfig(PreTrainedConfig):
     # Task parameters γ.
     use_task_params: bool | None = None
 
-    # Execution.
+    # Execution (paper Sec. III: online conditioning, PD tracking, phase stopping).
     demo_length: int | None = None
-    state_feedback: bool = True
+    online_feedback: bool = True
+    feedback_dims: tuple[int, ...] | None = None
     condition_on_start: bool = True
+    phase_step: float | None = None
+    phase_stop_threshold: float | None = 0.15
+    pd_kp: float = 1.0
+    pd_kd: float = 0.0
+    sigma_scaled_gains: bool = False
+    sigma_ref: float = 0.05
+    kp_min: float = 0.2
+    kp_max: float = 1.0
 
     # Optimizer.
     optimizer_lr: float = 1e-3
@@ -135,6 +155,21 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"window_size must be >= 2, got {self.window_size}")
         if self.demo_length is not None and self.demo_length < 2:
             raise ValueError(f"demo_length must be >= 2 frames, got {self.demo_length}")
+        if self.phase_step is not None and not 0.0 < self.phase_step <= 1.0:
+            raise ValueError(f"phase_step must be in (0, 1], got {self.phase_step}")
+        if self.phase_stop_threshold is not None and not self.phase_stop_threshold > 0:
+            raise ValueError(f"phase_stop_threshold must be > 0 (or None to never stop), got {self.phase_stop_threshold}")
+        if not self.pd_kp > 0 or self.pd_kd < 0:
+            raise ValueError(f"PD gains need pd_kp > 0 and pd_kd >= 0, got pd_kp={self.pd_kp}, pd_kd={self.pd_kd}")
+        if not 0 < self.kp_min <= self.kp_max or not self.sigma_ref > 0:
+            raise ValueError(
+                f"need 0 < kp_min <= kp_max and sigma_ref > 0, got kp_min={self.kp_min}, kp_max={self.kp_max}, "
+                f"sigma_ref={self.sigma_ref}"
+            )
+        if self.feedback_dims is not None:
+            self.feedback_dims = tuple(int(d) for d in self.feedback_dims)
+            if not self.feedback_dims:
+                raise ValueError("feedback_dims must name at least one SM dimension (or be None for all)")
         for kind in ("STATE", "ENV", "ACTION"):
             mode = self.normalization_mapping.get(kind, NormalizationMode.IDENTITY)
             if mode not in (NormalizationMode.MEAN_STD, NormalizationMode.IDENTITY):
@@ -193,6 +228,8 @@ class CNMPConfig(PreTrainedConfig):
                 f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {sm} (the CNMP "
                 "condition layout, see lerobot_cnmp.conditions)"
             )
+        if self.feedback_dims is not None and (min(self.feedback_dims) < 0 or max(self.feedback_dims) >= sm):
+            raise ValueError(f"feedback_dims {self.feedback_dims} outside the SM dimensions 0..{sm - 1}")
         if self.use_task_params and TASK_PARAMS not in self.input_features:
             raise ValueError(
                 f"use_task_params=True but the dataset/env has no {TASK_PARAMS!r} feature; "

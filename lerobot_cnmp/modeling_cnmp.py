@@ -257,12 +257,15 @@ class CNMPPolicy(PreTrainedPolicy):
     (``action_delta_indices``) with ``action_is_pad``; the phase of each entry is frame / (T - 1), from the
     dataset's episode table (given by ``lerobot-train``) or from ``action_phase`` when the batch has it.
 
-    Execution (``select_action``): per env, the policy keeps a phase τ (0 after ``reset``). Each step it
-    conditions on the episode's conditions (``observation.environment_state``) and, with
-    ``state_feedback``, on the sensed state (and, with ``condition_on_start``, on the state sensed at the
-    first step, at t = 0), predicts SM(τ) and returns it as the action, then advances
-    τ by 1 / (demo_length - 1). The sensed state at step k is what the action of step k - 1 commanded, so
-    it enters the context at phase τ - Δ.
+    Execution (``select_action``, the paper's loop of Sec. III / Fig. 3): per env, the policy keeps a phase
+    τ (0 after ``reset``). Each step it
+    1. advances τ by Δ unless the tracking error |sensed SM - SM commanded last step| exceeds
+       ``phase_stop_threshold`` (with ``online_feedback``; open loop always advances);
+    2. conditions on the episode's conditions (``observation.environment_state``), on the state sensed at the
+       first step (t = 0, ``condition_on_start``) and, with ``online_feedback``, on the current sensed state;
+    3. predicts SM(τ) (μ, σ) and sends the PD command s + kp·e + kd·(e - e_prev), e = μ - s (kp may be scaled
+       down where σ is large). The sensed state at step k is what step k - 1 commanded, so it enters the
+       context at phase τ - Δ.
     """
 
     config_class = CNMPConfig
@@ -380,18 +383,43 @@ class CNMPPolicy(PreTrainedPolicy):
     # ---- execution ------------------------------------------------------------------------------------
 
     def reset(self) -> None:
-        """Restart the phase of every env (called by lerobot-eval at each episode start)."""
-        self._phase: Tensor | None = None
+        """Restart every env's execution state (called by lerobot-eval at each episode start)."""
+        self._phase: Tensor | None = None  # τ per env
         self._start: Tensor | None = None  # state sensed at the first step (condition_on_start)
+        self._target: Tensor | None = None  # SM commanded at the previous step (normalized)
+        self._error: Tensor | None = None  # previous PD error e, for the D term
+        self._last_std: Tensor | None = None  # predicted σ of the last step (for inspection and plots)
 
     @property
     def phase_step(self) -> float:
+        if self.config.phase_step is not None:
+            return self.config.phase_step
         if self.config.demo_length is None:
             raise RuntimeError(
                 "demo_length is unknown: train on a dataset (it is set from the episode lengths) or set "
-                "--policy.demo_length"
+                "--policy.demo_length or --policy.phase_step"
             )
         return 1.0 / (self.config.demo_length - 1)
+
+    def _feedback_mask(self, like: Tensor) -> Tensor:
+        mask = torch.ones_like(like)
+        if self.config.feedback_dims is not None:
+            mask = torch.zeros_like(like)
+            mask[..., list(self.config.feedback_dims)] = 1.0
+        return mask
+
+    def tracking_error(self, state: Tensor) -> Tensor:
+        """Per env, max over the fed-back dims of |sensed SM - SM commanded at the previous step|."""
+        if self._target is None:
+            return torch.zeros(state.shape[0], device=state.device, dtype=state.dtype)
+        return ((state - self._target).abs() * self._feedback_mask(state)).amax(dim=-1)
+
+    def pd_gains(self, std: Tensor) -> Tensor:
+        """kp per env and SM dim: constant, or scaled by sigma_ref / σ within [kp_min, kp_max]."""
+        c = self.config
+        if not c.sigma_scaled_gains:
+            return torch.full_like(std, c.pd_kp)
+        return (c.pd_kp * c.sigma_ref / std).clamp(c.kp_min, c.kp_max)
 
     def _task_params(self, batch: dict[str, Tensor]) -> Tensor | None:
         if not self.config.task_dim:
@@ -404,7 +432,8 @@ class CNMPPolicy(PreTrainedPolicy):
         return g
 
     def execution_context(self, batch: dict[str, Tensor], phase: Tensor) -> Context:
-        """Conditions from ``environment_state`` plus (with ``state_feedback``) the sensed state at τ - Δ."""
+        """Conditions from ``environment_state``, the start state at t = 0 and (with ``online_feedback``) the
+        current sensed state at τ - Δ."""
         d = self.config.sm_dim
         phases, values, masks, valids = [], [], [], []
         if OBS_ENV_STATE in batch and self.config.max_conditions:
@@ -418,9 +447,9 @@ class CNMPPolicy(PreTrainedPolicy):
             values.append(c_values)
             masks.append(c_mask)
             valids.append(given & (c_mask.sum(-1) > 0))
-        if self.config.state_feedback or self.config.condition_on_start:
+        if self.config.online_feedback or self.config.condition_on_start:
             if OBS_STATE not in batch:
-                raise KeyError(f"state_feedback and condition_on_start need {OBS_STATE!r} in the observation")
+                raise KeyError(f"online_feedback and condition_on_start need {OBS_STATE!r} in the observation")
             state = batch[OBS_STATE]
             if state.shape[-1] != d:
                 raise ValueError(f"{OBS_STATE!r} has {state.shape[-1]} dims, the SM has {d}")
@@ -432,35 +461,54 @@ class CNMPPolicy(PreTrainedPolicy):
             values.append(self._start[:, None, :])
             masks.append(torch.ones_like(state)[:, None, :])
             valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
-        if self.config.state_feedback:
+        if self.config.online_feedback:
             phases.append((phase - self.phase_step).clamp(min=0.0)[:, None])
             values.append(state[:, None, :])
-            masks.append(torch.ones_like(state)[:, None, :])
+            masks.append(self._feedback_mask(state)[:, None, :])
             valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
         if not phases:
             raise ValueError(
-                "nothing to condition on: the observation has no environment_state conditions and "
-                "state_feedback is off"
+                "nothing to condition on: the observation has no environment_state conditions and both "
+                "online_feedback and condition_on_start are off"
             )
         valid = torch.cat(valids, dim=1)
         if not bool(valid.any(dim=1).all()):
             raise ValueError("an env in the batch has no condition to condition on (empty context)")
         return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._task_params(batch))
 
+    def _ensure_state(self, batch: dict[str, Tensor]) -> Tensor:
+        ref = batch[OBS_STATE] if OBS_STATE in batch else batch[OBS_ENV_STATE]
+        if self._phase is None or self._phase.shape[0] != ref.shape[0]:
+            self.reset()
+            self._phase = torch.zeros(ref.shape[0], device=ref.device, dtype=ref.dtype)
+        return ref
+
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """The SM predicted at the current phase, [B, 1, D] (the phase is not advanced)."""
-        ref = batch[OBS_STATE] if OBS_STATE in batch else batch[OBS_ENV_STATE]
-        n_envs = ref.shape[0]
-        if self._phase is None or self._phase.shape[0] != n_envs:
-            self._phase = torch.zeros(n_envs, device=ref.device, dtype=ref.dtype)
-        context = self.execution_context(batch, self._phase)
-        mean, _ = self.model(context, self._phase[:, None])
+        """The SM predicted at the current phase, [B, 1, D] (no phase update, no PD)."""
+        self._ensure_state(batch)
+        mean, _ = self.model(self.execution_context(batch, self._phase), self._phase[:, None])
         return mean
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """Condition, predict SM(τ) as the action, advance τ by one step (each env separately)."""
-        action = self.predict_action_chunk(batch)[:, 0]
-        self._phase = (self._phase + self.phase_step).clamp(max=1.0)
+        """One step of the execution loop (see the class docstring), for every env of the batch."""
+        c = self.config
+        first = self._phase is None or self._target is None
+        self._ensure_state(batch)
+        state = batch.get(OBS_STATE)
+        if not first:
+            advance = torch.ones_like(self._phase, dtype=torch.bool)
+            if c.online_feedback and c.phase_stop_threshold is not None and state is not None:
+                advance = self.tracking_error(state) <= c.phase_stop_threshold
+            self._phase = torch.where(advance, (self._phase + self.phase_step).clamp(max=1.0), self._phase)
+        mean, std = self.model(self.execution_context(batch, self._phase), self._phase[:, None])
+        target, std = mean[:, 0], std[:, 0]
+        action = target
+        if c.online_feedback and state is not None:
+            error = target - state
+            previous = self._error if self._error is not None else error
+            action = state + self.pd_gains(std) * error + c.pd_kd * (error - previous)
+            self._error = error
+        self._target, self._last_std = target, std
         return action

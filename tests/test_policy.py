@@ -127,28 +127,33 @@ def _obs(n_envs: int, seed: int = 0) -> dict:
 def test_select_action_phase_per_env_and_reset(policy_and_data):
     policy, _ = policy_and_data
     policy.eval()
-    policy.reset()
-    step = 1 / (policy.config.demo_length - 1)
-    assert policy.config.demo_length == 200  # derived from the dataset
-    a = policy.select_action(_obs(3))
-    assert a.shape == (3, 2) and torch.isfinite(a).all()
-    for _ in range(9):
+    policy.config.phase_stop_threshold = None  # random states: no tracking to judge here
+    try:
+        policy.reset()
+        step = 1 / (policy.config.demo_length - 1)
+        assert policy.config.demo_length == 200  # derived from the dataset
+        a = policy.select_action(_obs(3))
+        assert a.shape == (3, 2) and torch.isfinite(a).all()
+        torch.testing.assert_close(policy._phase, torch.zeros(3))  # the first step is at t = 0
+        for _ in range(9):
+            policy.select_action(_obs(3))
+        torch.testing.assert_close(policy._phase, torch.full((3,), 9 * step))
+        policy.reset()
         policy.select_action(_obs(3))
-    torch.testing.assert_close(policy._phase, torch.full((3,), 10 * step))
-    policy.reset()
-    policy.select_action(_obs(3))
-    torch.testing.assert_close(policy._phase, torch.full((3,), step))
-    # Each env of a batch is conditioned on its own observation: env 1 alone gives env 1's action.
-    policy.reset()
-    many = policy.select_action(_obs(3, seed=5))
-    policy.reset()
-    obs = _obs(3, seed=5)
-    one = policy.select_action({k: v[1:2] for k, v in obs.items()})
-    torch.testing.assert_close(many[1:2], one)
-    # The phase saturates at 1.
-    for _ in range(250):
-        policy.select_action(_obs(3))
-    assert float(policy._phase.max()) == 1.0
+        torch.testing.assert_close(policy._phase, torch.zeros(3))
+        # Each env of a batch is conditioned on its own observation: env 1 alone gives env 1's action.
+        policy.reset()
+        many = policy.select_action(_obs(3, seed=5))
+        policy.reset()
+        obs = _obs(3, seed=5)
+        one = policy.select_action({k: v[1:2] for k, v in obs.items()})
+        torch.testing.assert_close(many[1:2], one)
+        # The phase saturates at 1.
+        for _ in range(250):
+            policy.select_action(_obs(3))
+        assert float(policy._phase.max()) == 1.0
+    finally:
+        policy.config.phase_stop_threshold = CNMPConfig.phase_stop_threshold
 
 
 @pytest.mark.parametrize(
@@ -179,13 +184,13 @@ def test_condition_phase_outside_range_is_rejected(policy_and_data):
 
 def test_empty_context_is_rejected(policy_and_data):
     policy, _ = policy_and_data
-    policy.config.state_feedback = policy.config.condition_on_start = False
+    policy.config.online_feedback = policy.config.condition_on_start = False
     try:
         policy.reset()
         with pytest.raises(ValueError, match="empty context"):
             policy.select_action({**_obs(1), OBS_ENV_STATE: torch.zeros(1, 24)})
     finally:
-        policy.config.state_feedback = policy.config.condition_on_start = True
+        policy.config.online_feedback = policy.config.condition_on_start = True
 
 
 def test_programmatic_loading_restores_processors(policy_and_data, meta, tmp_path):
@@ -268,6 +273,110 @@ def test_start_and_current_state_enter_the_context(policy_and_data):
     torch.testing.assert_close(ctx.values[:, k], first[OBS_STATE])
     assert bool((ctx.phase[:, k] == 0).all())
     torch.testing.assert_close(ctx.values[:, k + 1], later[OBS_STATE])
-    torch.testing.assert_close(ctx.phase[:, k + 1], policy._phase - policy.phase_step)
+    torch.testing.assert_close(ctx.phase[:, k + 1], (policy._phase - policy.phase_step).clamp(min=0))
     policy.reset()
-    assert policy._start is None and policy._phase is None
+    assert policy._start is None and policy._phase is None and policy._target is None
+
+
+# ---- online execution: phase stopping, PD, open loop (paper Sec. III) ----------------------------------
+
+
+def _tracking_obs(policy, env_state, states):
+    return {OBS_STATE: states, OBS_ENV_STATE: env_state}
+
+
+def test_phase_stops_while_tracking_error_is_large_and_resumes(policy_and_data):
+    policy, _ = policy_and_data
+    policy.reset()
+    obs = _obs(2, seed=7)
+    policy.select_action(obs)  # step 0: phase 0, commands a target per env
+    step = policy.phase_step
+    far = policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]])  # env 0 tracked, env 1 far off (held)
+    policy.select_action({**obs, OBS_STATE: far})
+    torch.testing.assert_close(policy._phase, torch.tensor([step, 0.0]))  # env 1 stalls, env 0 goes on
+    for _ in range(3):
+        far = policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+        policy.select_action({**obs, OBS_STATE: far})
+    torch.testing.assert_close(policy._phase, torch.tensor([4 * step, 0.0]))
+    policy.select_action({**obs, OBS_STATE: policy._target.clone()})  # released: error 0
+    torch.testing.assert_close(policy._phase, torch.tensor([5 * step, step]))
+    assert policy.tracking_error(policy._target.clone()).abs().max() == 0
+
+
+def test_feedback_dims_limit_the_tracking_error(policy_and_data):
+    policy, _ = policy_and_data
+    policy.config.feedback_dims = (0,)
+    try:
+        policy.reset()
+        obs = _obs(1, seed=8)
+        policy.select_action(obs)
+        off_in_y = policy._target + torch.tensor([[0.0, 5.0]])  # only the unwatched dim is off
+        assert float(policy.tracking_error(off_in_y)[0]) == 0.0
+        ctx = policy.execution_context({**obs, OBS_STATE: off_in_y}, policy._phase)
+        torch.testing.assert_close(ctx.mask[0, -1], torch.tensor([1.0, 0.0]))  # current state: x only
+    finally:
+        policy.config.feedback_dims = None
+
+
+def test_open_loop_replays_the_plan(policy_and_data):
+    policy, _ = policy_and_data
+    policy.config.online_feedback = False
+    try:
+        policy.reset()
+        obs = _obs(1, seed=9)
+        first = policy.select_action(obs)
+        # Whatever the sensed state does later, the open loop ignores it and always advances.
+        a = policy.select_action({**obs, OBS_STATE: obs[OBS_STATE] + 3.0})
+        b_policy = CNMPPolicy(policy.config)
+        b_policy.load_state_dict(policy.state_dict())
+        b_policy.eval()
+        b_policy.select_action(obs)
+        b = b_policy.select_action(obs)
+        torch.testing.assert_close(a, b)
+        torch.testing.assert_close(policy._phase, torch.tensor([policy.phase_step]))
+        assert first.shape == (1, 2)
+        ctx = policy.execution_context(obs, policy._phase)
+        assert ctx.phase.shape[1] == policy.config.max_conditions + 1  # conditions + start, no current state
+    finally:
+        policy.config.online_feedback = True
+
+
+def test_pd_law_and_sigma_scaled_gains(policy_and_data):
+    policy, _ = policy_and_data
+    cfg = policy.config
+    std = torch.tensor([[1e-4, 0.01], [0.05, 10.0]])
+    torch.testing.assert_close(policy.pd_gains(std), torch.full_like(std, cfg.pd_kp))
+    cfg.sigma_scaled_gains = True
+    try:
+        k = policy.pd_gains(std)
+        assert bool(((k >= cfg.kp_min) & (k <= cfg.kp_max)).all())
+        assert float(k[0, 0]) == pytest.approx(cfg.kp_max) and float(k[1, 1]) == pytest.approx(cfg.kp_min)  # low σ stiff
+    finally:
+        cfg.sigma_scaled_gains = False
+    # kp = 1, kd = 0: the command is the predicted SM itself.
+    policy.reset()
+    obs = _obs(1, seed=4)
+    action = policy.select_action(obs)
+    torch.testing.assert_close(action, policy._target)
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("phase_stop_threshold", -0.1, "phase_stop_threshold"),
+        ("phase_stop_threshold", 0.0, "phase_stop_threshold"),
+        ("pd_kp", -1.0, "PD gains"),
+        ("pd_kd", -0.5, "PD gains"),
+        ("kp_min", 2.0, "kp_min"),
+        ("phase_step", 1.5, "phase_step"),
+        ("feedback_dims", (), "feedback_dims"),
+    ],
+)
+def test_bad_execution_config_is_rejected(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        CNMPConfig(**{field: value})
+
+
+def test_feedback_dims_outside_the_sm_are_rejected(meta):
+    with pytest.raises(ValueError, match="feedback_dims"):
+        make_policy(small_config(feedback_dims=(0, 5)), ds_meta=meta)

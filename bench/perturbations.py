@@ -1,0 +1,132 @@
+"""Perturbation report: {none, push, hold} x {online feedback, open-loop replay} on cnmp_obstacle2d.
+
+    python bench/perturbations.py --checkpoint outputs/main/train/checkpoints/last/pretrained_model [--episodes 50]
+
+Episodes run through LeRobot's own ``rollout`` (as ``lerobot-eval`` does), success judged by the env.
+Episodes run their full length (no termination on success, so the goal error is that of the final
+position); success is the env's rule at any step, as ``lerobot-eval`` counts it. Also writes a plot of one held
+episode (predicted vs sensed SM, and the phase stalling and resuming). Last line: one JSON object of
+success rates in %, keyed like ``push_feedback``, ``push_open_loop``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, batch: int, seed: int, record=None):
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+    from lerobot.utils.constants import OBS_STATE
+
+    from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
+
+    # Episodes run to their end (300 steps) so the final goal error means something; success is any step's.
+    cfg = CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, terminate_on_success=False)
+    env = next(iter(make_env(cfg, n_envs=batch)[cfg.type].values()))
+    env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+    policy.config.online_feedback = feedback
+    successes, goal_errors = [], []
+    for start in range(0, episodes, batch):
+        data = rollout(env, policy, env_pre, env_post, pre, post, seeds=list(range(seed + start, seed + start + batch)),
+                       return_observations=True, predicted_latents_callback=record)
+        states = data["observation"][OBS_STATE]  # [B, T(+1), 2]
+        done = data["done"]  # [B, T]
+        last = done.float().argmax(dim=1)  # first done step
+        for b in range(batch):
+            successes.append(bool(data["success"][b, : last[b] + 1].any()))
+            goal = torch.tensor([1.0, float(states[b, 0, 1])])  # the goal mirrors the start: (1, y0)
+            goal_errors.append(float((states[b, last[b]] - goal).norm()))
+    env.close()
+    return 100.0 * np.mean(successes[:episodes]), float(np.mean(goal_errors[:episodes]))
+
+
+def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
+    """One held episode with feedback: predicted vs sensed SM and the phase, step by step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    trace = {"phase": [], "target": []}
+
+    def record(p):
+        trace["phase"].append(float(p._phase[0]))
+        trace["target"].append(post(p._target[:1].clone())[0].numpy())
+
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+    from lerobot.utils.constants import OBS_STATE
+
+    from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
+
+    cfg = CNMPObstacle2DEnv(perturbation="hold", render_mode=None)
+    env = next(iter(make_env(cfg, n_envs=1)[cfg.type].values()))
+    env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+    policy.config.online_feedback = True
+    data = rollout(env, policy, env_pre, env_post, pre, post, seeds=[seed], return_observations=True,
+                   predicted_latents_callback=record)
+    env.close()
+    n = len(trace["phase"])
+    state = data["observation"][OBS_STATE][0, :n].numpy()
+    target = np.stack(trace["target"])
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    for d, name in enumerate(("x", "y")):
+        axes[d].plot(target[:, d], "k-", lw=1.5, label="predicted SM (command)")
+        axes[d].plot(state[:, d], "tab:red", lw=1.2, ls="--", label="sensed SM")
+        axes[d].set_ylabel(name)
+    axes[0].legend(fontsize=8)
+    axes[2].plot(trace["phase"], color="tab:blue")
+    axes[2].set_ylabel("phase τ")
+    axes[2].set_xlabel("control step")
+    stalled = np.flatnonzero(np.diff(trace["phase"]) == 0)
+    stalled = stalled[np.asarray(trace["phase"])[stalled] < 1.0]
+    for ax in axes:
+        for k in stalled:
+            ax.axvspan(k, k + 1, color="0.85", lw=0)
+    fig.suptitle("held episode, online feedback: the phase stalls while the body is held (gray)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main() -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", default=str(REPO / "outputs/main/train/checkpoints/last/pretrained_model"))
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--batch", type=int, default=10)
+    p.add_argument("--seed", type=int, default=200000)
+    p.add_argument("--plot", default=str(REPO / "outputs/perturbation_hold.png"))
+    args = p.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot_cnmp.api import load_pretrained
+
+    policy, pre, post = load_pretrained(args.checkpoint)
+    res, errs = {}, {}
+    for pert in ("none", "push", "hold"):
+        for fb in (True, False):
+            key = f"{pert}_{'feedback' if fb else 'open_loop'}"
+            res[key], errs[key] = run(policy, pre, post, pert, fb, args.episodes, args.batch, args.seed)
+    print(f"\n{'perturbation':<14}{'execution':<12}{'success %':>10}{'goal err':>10}   ({args.episodes} episodes each)")
+    for key in res:
+        pert, mode = key.split("_", 1)
+        print(f"{pert:<14}{mode.replace('_', ' '):<12}{res[key]:>10.1f}{errs[key]:>10.3f}")
+    plot = plot_held_episode(policy, pre, post, Path(args.plot), args.seed)
+    print(f"plot of a held episode: {plot}")
+    print(json.dumps({**{k: round(v, 1) for k, v in res.items()}, "episodes": args.episodes,
+                      "goal_error": {k: round(v, 4) for k, v in errs.items()}}))
+    return res
+
+
+if __name__ == "__main__":
+    main()
