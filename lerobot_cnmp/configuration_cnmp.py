@@ -90,7 +90,6 @@ class CNMPConfig(PreTrainedConfig):
     m_max_targets: int = 16
     context_in_targets: bool = True
     partial_obs_prob: float = 0.25
-
     draws_per_sample: int = 1
 
     # Stock lerobot-train data window.
