@@ -52,7 +52,7 @@ def main() -> dict:
     from lerobot_cnmp.baselines import ProMPBaseline
     from lerobot_cnmp.data import load_demos
     from lerobot_cnmp.envs.obstacle2d import OBSTACLE_CENTER, OBSTACLE_RADIUS, PAPER_CONDITIONS, sample_episode
-    from lerobot_cnmp.plot import plot_conditioned_xy
+    from lerobot_cnmp.plot import mode_colors, plot_conditioned_xy
 
     demos = load_demos(args.dataset)["demos"]
     methods = {"CNMP": CNMPModel.load(args.checkpoint).predict, "ProMP": ProMPBaseline().fit(demos).predict}
@@ -76,8 +76,7 @@ def main() -> dict:
             print(f"{name:<8}{label:<16}{free:>18.1f}{err:>22.4f}{off:>15.3f}")
         all_sets = list(PAPER_CONDITIONS.values()) + random_sets
         res[f"obstacle_collision_free_{key}"] = round(evaluate(predict, all_sets, phases, demo_grid)[0], 1)
-    colors = ["tab:blue" if d[len(d) // 2, 1] > 0 else "tab:orange" for d in demos]
-    plot = plot_conditioned_xy(demos, PAPER_CONDITIONS, methods, args.plot, demo_colors=colors,
+    plot = plot_conditioned_xy(demos, PAPER_CONDITIONS, methods, args.plot, demo_colors=mode_colors(demos),
                                obstacle=(tuple(OBSTACLE_CENTER), OBSTACLE_RADIUS))
     print(f"plot: {plot}")
     print(json.dumps(res))

@@ -22,17 +22,23 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, batch: int, seed: int, record=None):
+def make_sim(policy, perturbation: str, n_envs: int, **env_kwargs):
+    """A vector env of the obstacle sim with its LeRobot env processors."""
     from lerobot.envs.factory import make_env, make_env_pre_post_processors
-    from lerobot.scripts.lerobot_eval import rollout
-    from lerobot.utils.constants import OBS_STATE
 
     from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
 
+    cfg = CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, **env_kwargs)
+    env = next(iter(make_env(cfg, n_envs=n_envs)[cfg.type].values()))
+    return (env, *make_env_pre_post_processors(cfg, policy.config))
+
+
+def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, batch: int, seed: int, record=None):
+    from lerobot.scripts.lerobot_eval import rollout
+    from lerobot.utils.constants import OBS_STATE
+
     # Episodes run to their end (300 steps) so the final goal error means something; success is any step's.
-    cfg = CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, terminate_on_success=False)
-    env = next(iter(make_env(cfg, n_envs=batch)[cfg.type].values()))
-    env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+    env, env_pre, env_post = make_sim(policy, perturbation, batch, terminate_on_success=False)
     policy.config.online_feedback = feedback
     successes, goal_errors = [], []
     for start in range(0, episodes, batch):
@@ -62,15 +68,10 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
         trace["phase"].append(float(p._phase[0]))
         trace["target"].append(post(p._target[:1].clone())[0].numpy())
 
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import rollout
     from lerobot.utils.constants import OBS_STATE
 
-    from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
-
-    cfg = CNMPObstacle2DEnv(perturbation="hold", render_mode=None)
-    env = next(iter(make_env(cfg, n_envs=1)[cfg.type].values()))
-    env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+    env, env_pre, env_post = make_sim(policy, "hold", 1)
     policy.config.online_feedback = True
     data = rollout(env, policy, env_pre, env_post, pre, post, seeds=[seed], return_observations=True,
                    predicted_latents_callback=record)

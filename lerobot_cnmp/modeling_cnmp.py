@@ -388,7 +388,6 @@ class CNMPPolicy(PreTrainedPolicy):
         self._start: Tensor | None = None  # state sensed at the first step (condition_on_start)
         self._target: Tensor | None = None  # SM commanded at the previous step (normalized)
         self._error: Tensor | None = None  # previous PD error e, for the D term
-        self._last_std: Tensor | None = None  # predicted σ of the last step (for inspection and plots)
 
     @property
     def phase_step(self) -> float:
@@ -483,26 +482,28 @@ class CNMPPolicy(PreTrainedPolicy):
             self._phase = torch.zeros(ref.shape[0], device=ref.device, dtype=ref.dtype)
         return ref
 
+    def _predict(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """(μ, σ) of the SM at each env's current phase, [B, 1, D] each."""
+        return self.model(self.execution_context(batch, self._phase), self._phase[:, None])
+
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """The SM predicted at the current phase, [B, 1, D] (no phase update, no PD)."""
         self._ensure_state(batch)
-        mean, _ = self.model(self.execution_context(batch, self._phase), self._phase[:, None])
-        return mean
+        return self._predict(batch)[0]
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """One step of the execution loop (see the class docstring), for every env of the batch."""
         c = self.config
-        first = self._phase is None or self._target is None
-        self._ensure_state(batch)
+        self._ensure_state(batch)  # resets the state of a new batch of envs
         state = batch.get(OBS_STATE)
-        if not first:
+        if self._target is not None:  # not the first step: the phase may advance
             advance = torch.ones_like(self._phase, dtype=torch.bool)
             if c.online_feedback and c.phase_stop_threshold is not None and state is not None:
                 advance = self.tracking_error(state) <= c.phase_stop_threshold
             self._phase = torch.where(advance, (self._phase + self.phase_step).clamp(max=1.0), self._phase)
-        mean, std = self.model(self.execution_context(batch, self._phase), self._phase[:, None])
+        mean, std = self._predict(batch)
         target, std = mean[:, 0], std[:, 0]
         action = target
         if c.online_feedback and state is not None:
@@ -510,5 +511,5 @@ class CNMPPolicy(PreTrainedPolicy):
             previous = self._error if self._error is not None else error
             action = state + self.pd_gains(std) * error + c.pd_kd * (error - previous)
             self._error = error
-        self._target, self._last_std = target, std
+        self._target = target
         return action

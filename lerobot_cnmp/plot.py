@@ -69,6 +69,11 @@ def plot_conditioned_xy(
     return out
 
 
+def mode_colors(demos: list[np.ndarray]) -> list[str]:
+    """Blue for demos above the obstacle at mid-motion (mode +1), orange below (mode -1)."""
+    return ["tab:blue" if d[len(d) // 2, 1] > 0 else "tab:orange" for d in demos]
+
+
 def paper_figure(checkpoint: str | Path, dataset: str | Path, out: str | Path) -> Path:
     """The paper's Fig. 4 (CNMP row) for the obstacle task, from a checkpoint and its dataset."""
     from lerobot_cnmp.api import CNMPModel
@@ -77,13 +82,12 @@ def paper_figure(checkpoint: str | Path, dataset: str | Path, out: str | Path) -
 
     model = CNMPModel.load(checkpoint)
     data = load_demos(dataset)
-    colors = ["tab:blue" if d[len(d) // 2, 1] > 0 else "tab:orange" for d in data["demos"]]
     return plot_conditioned_xy(
         data["demos"],
         PAPER_CONDITIONS,
         {"CNMP": model.predict},
         out,
-        demo_colors=colors,
+        demo_colors=mode_colors(data["demos"]),
         obstacle=(tuple(OBSTACLE_CENTER), OBSTACLE_RADIUS),
     )
 

@@ -380,3 +380,15 @@ def test_bad_execution_config_is_rejected(field, value, match):
 def test_feedback_dims_outside_the_sm_are_rejected(meta):
     with pytest.raises(ValueError, match="feedback_dims"):
         make_policy(small_config(feedback_dims=(0, 5)), ds_meta=meta)
+
+
+def test_new_batch_of_envs_starts_at_phase_zero(policy_and_data):
+    """A batch of another size is a new set of episodes: every env starts at t = 0, from its own state."""
+    policy, _ = policy_and_data
+    policy.reset()
+    for _ in range(5):
+        policy.select_action(_obs(3, seed=11))
+    obs = _obs(2, seed=12)
+    policy.select_action(obs)
+    torch.testing.assert_close(policy._phase, torch.zeros(2))
+    torch.testing.assert_close(policy._start, obs[OBS_STATE])
