@@ -2,11 +2,15 @@
 
     python bench/latency.py [--calls 2000]
 
-Two figures, p50 over ``--calls`` calls on CPU, same policy and observation stream:
-- ``control_step_p50_ms``: in-process, the pure-torch CNMP (encode + aggregate + decode) on a ready context;
+Figures on CPU with 1 torch thread, same policy and observation stream, p50 over ``--calls`` calls:
+- ``control_step_p50_ms``: in-process, the pure-torch CNMP (encode + aggregate + decode) on a ready context
+  of the policy's execution (2 conditions, the start state, the sensed state), one query;
+- ``trajectory_200_ms``: the same context, a whole 200-step trajectory with σ (200 queries in one call);
 - ``select_action_p50_ms``: what ``lerobot-eval`` runs per step: preprocessor (normalize, batch, device) ->
   ``CNMPPolicy.select_action`` -> postprocessor (unnormalize).
-Latency does not depend on the weights, so the policy is built from the dataset without training.
+The calls run in ``--rounds`` interleaved rounds; the spread of the round p50s shows how much the machine
+itself moved during the run. Latency does not depend on the weights, so the policy is built from the
+dataset without training.
 Last line: one JSON object.
 """
 
@@ -24,20 +28,30 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 
 
-def p50_ms(fn, calls: int, warmup: int = 50) -> float:
-    for _ in range(warmup):
-        fn()
+def timings_ms(fn, calls: int) -> np.ndarray:
     times = np.empty(calls)
     for i in range(calls):
         t0 = time.perf_counter()
         fn()
         times[i] = time.perf_counter() - t0
-    return float(np.median(times) * 1e3)
+    return times * 1e3
+
+
+def interleaved_p50(fns: dict, calls: int, rounds: int) -> dict:
+    """{name: (p50 over all calls, [p50 of each round])}, the functions taking turns round by round."""
+    for fn in fns.values():
+        timings_ms(fn, 100)  # warm-up
+    per = {name: [] for name in fns}
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            per[name].append(timings_ms(fn, max(calls // rounds, 1)))
+    return {name: (float(np.median(np.concatenate(t))), [float(np.median(x)) for x in t]) for name, t in per.items()}
 
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--calls", type=int, default=2000)
+    p.add_argument("--calls", type=int, default=3000)
+    p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--dataset", default=str(REPO / "datasets" / "cnmp_obstacle2d"))
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -62,27 +76,38 @@ def main() -> dict:
     policy.reset()
     ctx = policy.execution_context(pre(dict(obs)), torch.full((1,), 0.3))
     query = torch.full((1, 1), 0.3)
+    trajectory = torch.linspace(0, 1, 200)[None]
 
     def control_step():
         with torch.inference_mode():
             policy.model(ctx, query)
+
+    def trajectory_200():
+        with torch.inference_mode():
+            policy.model(ctx, trajectory)
 
     def select_action():
         with torch.inference_mode():
             post(policy.select_action(pre(dict(obs))))
 
     policy.reset()
+    fns = {"control_step": control_step, "trajectory_200": trajectory_200, "select_action": select_action}
+    t = interleaved_p50(fns, args.calls, args.rounds)
     res = {
-        "control_step_p50_ms": round(p50_ms(control_step, args.calls), 4),
-        "select_action_p50_ms": round(p50_ms(select_action, args.calls), 4),
+        "control_step_p50_ms": round(t["control_step"][0], 4),
+        "trajectory_200_ms": round(t["trajectory_200"][0], 4),
+        "select_action_p50_ms": round(t["select_action"][0], 4),
+        **{f"{k}_round_p50s_ms": [round(v, 4) for v in t[k][1]] for k in fns},
         "calls": args.calls,
         "context_points": int(ctx.valid.sum()),
         "torch_threads": torch.get_num_threads(),
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU",
     }
-    print(f"{'figure':<24}{'p50 (ms)':>10}")
-    print(f"{'control step (torch)':<24}{res['control_step_p50_ms']:>10.4f}")
-    print(f"{'select_action + procs':<24}{res['select_action_p50_ms']:>10.4f}")
+    labels = {"control_step": "control step (torch)", "trajectory_200": "200-step trajectory + σ",
+              "select_action": "select_action + procs"}
+    print(f"{'figure':<26}{'p50 (ms)':>10}   rounds' p50s")
+    for k, label in labels.items():
+        print(f"{label:<26}{t[k][0]:>10.4f}   {' '.join(f'{v:.3f}' for v in t[k][1])}")
     print(json.dumps(res))
     return res
 

@@ -47,6 +47,25 @@ def test_shapes_and_positive_std(net):
     assert bool((std >= net.min_std).all())
 
 
+@pytest.mark.parametrize("task_dim,freqs", [(0, 0), (2, 0), (1, 3)])
+def test_fast_path_equals_the_plain_networks(task_dim, freqs):
+    """encode/decode run the layers without module calls and split Q's first layer; the result must be the
+    plain E(·) and Q([t, γ, r]) of the paper's equations."""
+    torch.manual_seed(1)
+    m = CNMP(sm_dim=2, task_dim=task_dim, encoder_layers=(16, 8), decoder_layers=(16, 16), phase_frequencies=freqs)
+    ctx = random_context(b=3, n=5, g=task_dim)
+    q = torch.rand(3, 6)
+    parts = [m.phase_features(ctx.phase)] + ([ctx.task_params[:, None].expand(-1, 5, -1)] if task_dim else [])
+    r_i = m.encoder(torch.cat(parts + [ctx.values * ctx.mask, ctx.mask], -1))
+    torch.testing.assert_close(m.encode(ctx), r_i)
+    r = r_i.mean(1)
+    parts = [m.phase_features(q)] + ([ctx.task_params[:, None].expand(-1, 6, -1)] if task_dim else [])
+    out = m.decoder(torch.cat(parts + [r[:, None].expand(-1, 6, -1)], -1))
+    mean, std = m(ctx, q)
+    torch.testing.assert_close(mean, out[..., :2])
+    torch.testing.assert_close(std, m.min_std + torch.nn.functional.softplus(out[..., 2:]))
+
+
 def test_context_permutation_invariance(net):
     ctx = random_context(g=1)
     q = torch.rand(3, 4)
