@@ -2,7 +2,8 @@
 
     python bench/train_speed.py [--batch_size 32] [--steps 400]
 
-- API: ``CNMPModel.fit`` on the dataset's demos held in memory (whole episodes, no loader).
+- API: ``CNMPModel.fit`` on the dataset's demos held in memory (whole episodes, no loader), with the
+  config's model, sampling (draws per sample included) and optimizer.
 - lerobot-train: the real CLI with ``configs/cnmp_obstacle2d.json`` (its window, workers and model), run
   as a subprocess; steps/s = 1 / (update time + data wait) from its own log lines, skipping the first
   (start-up) interval. Both use the config's model and sampling settings.
@@ -23,21 +24,22 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIG = REPO / "configs" / "cnmp_obstacle2d.json"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import CONFIG, DATASET, api_model  # noqa: E402
 
 
-def api_steps_per_s(policy_fields: dict, batch_size: int, steps: int) -> float:
-    from lerobot_cnmp.api import CNMPModel
+def api_steps_per_s(cfg: dict, batch_size: int, steps: int) -> float:
     from lerobot_cnmp.data import load_demos
 
-    demos = load_demos(REPO / "datasets" / "cnmp_obstacle2d")["demos"]
-    keys = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_targets", "partial_obs_prob", "optimizer_lr")
-    model = CNMPModel(**{k: policy_fields[k] for k in keys if k in policy_fields})
+    demos = load_demos(DATASET)["demos"]
+    model = api_model(cfg)
     model.fit(demos, steps=20, batch_size=batch_size, progress=False)  # warm-up
-    t0 = time.perf_counter()
-    model.fit(demos, steps=steps, batch_size=batch_size, progress=False)
-    return steps / (time.perf_counter() - t0)
+    rates = []
+    for _ in range(3):  # the median of 3 runs, so a moment of load on a shared machine does not decide it
+        t0 = time.perf_counter()
+        model.fit(demos, steps=max(steps // 3, 1), batch_size=batch_size, progress=False)
+        rates.append(max(steps // 3, 1) / (time.perf_counter() - t0))
+    return float(np.median(rates))
 
 
 def lerobot_steps_per_s(batch_size: int, steps: int, extra: list[str]) -> dict:
@@ -45,7 +47,7 @@ def lerobot_steps_per_s(batch_size: int, steps: int, extra: list[str]) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
             str(Path(sys.executable).parent / "lerobot-train"), f"--config_path={CONFIG}",
-            f"--dataset.root={REPO / 'datasets' / 'cnmp_obstacle2d'}", f"--steps={steps}",
+            f"--dataset.root={DATASET}", f"--steps={steps}",
             f"--batch_size={batch_size}", f"--log_freq={log_freq}", "--save_checkpoint=false",
             "--policy.device=cpu", f"--output_dir={Path(tmp) / 'out'}", *extra,
         ]
@@ -73,7 +75,7 @@ def main() -> dict:
     import torch
 
     torch.set_num_threads(min(2, os.cpu_count() or 1))
-    api = api_steps_per_s(cfg["policy"], args.batch_size, args.steps)
+    api = api_steps_per_s(cfg, args.batch_size, args.steps)
     stock = lerobot_steps_per_s(args.batch_size, args.steps, args.lerobot_args.split())
     res = {
         "train_steps_per_s_api": round(api, 2),

@@ -93,9 +93,14 @@ class CNMPModel:
         batch_size: int = 64,
         seed: int = 0,
         progress: bool = True,
+        callback=None,
+        callback_every: int = 500,
     ) -> CNMPModel:
         """Train on demonstrations ``[N, T, D]`` (or a list of ``[T_i, D]``), optionally with per-demo task
-        parameters γ ``[N, G]``. Each step draws ``batch_size`` demos and, from each, observations and queries."""
+        parameters γ ``[N, G]``. Each step draws ``batch_size`` demos and, from each, observations and queries.
+
+        ``callback(steps_done, model)``, if given, runs every ``callback_every`` steps and after the last one,
+        with the model in eval mode (e.g. to track a validation error); returning True stops training there."""
         values, valid, phase = pad_demos(demos)
         n, _, d = values.shape
         gamma = None
@@ -105,8 +110,10 @@ class CNMPModel:
                 raise ValueError(f"task_params must be [N={n}, G]; got shape {gamma.shape}")
             if not np.isfinite(gamma).all():
                 raise ValueError("task_params contain NaN or infinite values")
-        if steps < 1 or batch_size < 1:
-            raise ValueError(f"steps and batch_size must be >= 1; got {steps}, {batch_size}")
+        if steps < 1 or batch_size < 1 or callback_every < 1:
+            raise ValueError(
+                f"steps, batch_size and callback_every must be >= 1; got {steps}, {batch_size}, {callback_every}"
+            )
         if self.policy is None:
             flat = values[valid]
             self.sm_mean, self.sm_std = flat.mean(0), np.maximum(flat.std(0), 1e-6)
@@ -146,6 +153,13 @@ class CNMPModel:
             if step % 50 == 0 or step == steps - 1:
                 self.history.append({"step": step, **info})
                 bar.set_postfix(nll=f"{info['nll']:.3f}", mae=f"{info['mae']:.3f}")
+            if callback is not None and ((step + 1) % callback_every == 0 or step == steps - 1):
+                policy.eval()
+                stop = callback(step + 1, self)
+                policy.train()
+                if stop:
+                    break
+        bar.close()
         policy.eval()
         return self
 

@@ -68,3 +68,59 @@ class ProMPBaseline:
         mean = np.stack([np.interp(q, grid, mean_g[:, d]) for d in range(self.sm_dim)], axis=1)
         var = np.stack([np.interp(q, grid, var_g[:, d]) for d in range(self.sm_dim)], axis=1)
         return mean.astype(np.float32), np.sqrt(np.maximum(var, 0.0)).astype(np.float32)
+
+
+class DMPBaseline:
+    """Dynamical Movement Primitive (Ijspeert et al. 2013) from ``movement_primitives.dmp``.
+
+    A DMP reproduces one movement shape; it is fitted on the demonstrations' mean (all demos resampled to
+    a common phase grid), as a single DMP learned from a set of demonstrations is. It generalizes to a new
+    start (phase 0) and goal (phase 1) through its dynamics, and cannot be conditioned on anything else:
+    :meth:`applies` tells whether a condition set is of that kind. Its prediction has no σ (zeros).
+    """
+
+    def __init__(self, n_weights_per_dim: int = 31):
+        self.n_weights_per_dim = n_weights_per_dim
+        self.dmp = None
+
+    def fit(self, demos) -> DMPBaseline:
+        from movement_primitives.dmp import DMP
+
+        values, valid, phase = pad_demos(demos)
+        self.grid = np.linspace(0.0, 1.0, values.shape[1])
+        resampled = [
+            np.stack([np.interp(self.grid, phase[i, valid[i]], values[i, valid[i], d]) for d in range(values.shape[2])], 1)
+            for i in range(len(values))
+        ]
+        self.mean_demo = np.mean(resampled, axis=0)
+        self.sm_dim = values.shape[2]
+        self.dmp = DMP(n_dims=self.sm_dim, execution_time=1.0, dt=1.0 / (len(self.grid) - 1),
+                       n_weights_per_dim=self.n_weights_per_dim)
+        self.dmp.imitate(self.grid, self.mean_demo)
+        return self
+
+    @staticmethod
+    def applies(conditions: list[Condition]) -> bool:
+        """True if every condition fixes all SM dims at the start (phase 0) or at the goal (phase 1)."""
+        return bool(conditions) and all(c.phase in (0.0, 1.0) and c.dims is None for c in conditions)
+
+    def predict(self, phases, conditions: list[Condition]) -> tuple[np.ndarray, np.ndarray]:
+        if self.dmp is None:
+            raise RuntimeError("the baseline is not fitted: call fit(demos) first")
+        q = np.asarray(phases, dtype=float).reshape(-1)
+        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
+            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+        if not self.applies(conditions):
+            raise ValueError(
+                "a DMP is conditioned only on its start (phase 0) and goal (phase 1), on all SM dims; got "
+                + ", ".join(f"phase {c.phase} dims {c.dims or 'all'}" for c in conditions)
+            )
+        start, goal = self.mean_demo[0].copy(), self.mean_demo[-1].copy()
+        for k, c in enumerate(conditions):
+            if len(c.values) != self.sm_dim:
+                raise ValueError(f"condition {k} has {len(c.values)} values; the SM has {self.sm_dim} dims")
+            (start if c.phase == 0.0 else goal)[:] = c.values
+        self.dmp.configure(start_y=start, goal_y=goal)
+        t, y = self.dmp.open_loop()
+        mean = np.stack([np.interp(q, t, y[:, d]) for d in range(self.sm_dim)], axis=1)
+        return mean.astype(np.float32), np.zeros_like(mean, dtype=np.float32)

@@ -1,9 +1,9 @@
-"""The ProMP baseline adapter (the algorithm is movement_primitives')."""
+"""The ProMP and DMP baseline adapters (the algorithms are movement_primitives')."""
 
 import numpy as np
 import pytest
 
-from lerobot_cnmp.baselines import ProMPBaseline
+from lerobot_cnmp.baselines import DMPBaseline, ProMPBaseline
 from lerobot_cnmp.conditions import Condition
 
 
@@ -37,3 +37,28 @@ def test_bad_inputs(promp):
         promp.predict([2.0], [Condition(0.5, (0.5, 0.1))])
     with pytest.raises(RuntimeError, match="not fitted"):
         ProMPBaseline().predict([0.5], [Condition(0.5, (0.5, 0.1))])
+
+
+def test_dmp_reaches_new_start_and_goal_with_the_demos_shape():
+    tau = np.linspace(0, 1, 100)
+    demos = [np.stack([tau, a * np.sin(np.pi * tau)], 1) for a in np.linspace(0.4, 0.6, 5)]
+    dmp = DMPBaseline(n_weights_per_dim=20).fit(demos)
+    same, std = dmp.predict(tau, [Condition(0.0, (0.0, 0.0)), Condition(1.0, (1.0, 0.0))])
+    np.testing.assert_allclose(same[:, 1], 0.5 * np.sin(np.pi * tau), atol=0.05)  # the mean demo (from rest)
+    assert not std.any()
+    moved, _ = dmp.predict(tau, [Condition(0.0, (0.0, 0.2)), Condition(1.0, (1.0, 0.2))])
+    np.testing.assert_allclose(moved[[0, -1], 1], [0.2, 0.2], atol=0.02)
+    assert moved[50, 1] > 0.6  # the bump is kept on top of the new start/goal
+
+
+def test_dmp_refuses_what_it_cannot_condition_on():
+    tau = np.linspace(0, 1, 50)
+    dmp = DMPBaseline().fit([np.stack([tau, tau], 1)])
+    assert DMPBaseline.applies([Condition(0.0, (0.0, 0.0)), Condition(1.0, (1.0, 1.0))])
+    assert not DMPBaseline.applies([Condition(0.5, (0.5, 0.5))])
+    with pytest.raises(ValueError, match="start .phase 0. and goal"):
+        dmp.predict(tau, [Condition(0.5, (0.5, 0.5))])
+    with pytest.raises(ValueError, match="start .phase 0. and goal"):
+        dmp.predict(tau, [Condition(1.0, (np.nan, 0.5), dims=(1,))])
+    with pytest.raises(RuntimeError, match="not fitted"):
+        DMPBaseline().predict(tau, [Condition(0.0, (0.0, 0.0))])

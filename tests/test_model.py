@@ -311,3 +311,19 @@ def test_cosine_schedule_decays_over_the_run():
         sched.step()
     assert lrs[0] == pytest.approx(1e-3) and lrs[-1] < 2e-5 and all(a >= b for a, b in zip(lrs, lrs[1:]))
     assert CNMPConfig(scheduler_decay_lr=None).get_scheduler_preset() is None
+
+
+def test_fit_callback_sees_progress_and_can_stop():
+    seen = []
+
+    def callback(done, model):
+        seen.append((done, model.policy.training))
+        return done >= 20
+
+    model = CNMPModel(encoder_layers=(16,), decoder_layers=(16,)).fit(
+        toy_demos(), steps=100, batch_size=4, progress=False, callback=callback, callback_every=10
+    )
+    assert seen == [(10, False), (20, False)]  # eval mode inside the callback; stopped at 20
+    assert not model.policy.training and model.history[-1]["step"] < 20
+    with pytest.raises(ValueError, match="callback_every"):
+        CNMPModel().fit(toy_demos(), steps=5, callback_every=0)

@@ -1,0 +1,43 @@
+"""What the bench scripts share: paths, and the config's CNMP built for the in-memory API."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "configs" / "cnmp_obstacle2d.json"
+DATASET = REPO / "datasets" / "cnmp_obstacle2d"
+CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pretrained_model"
+
+API_FIELDS = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_targets", "context_in_targets",
+              "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr")
+"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer)."""
+
+
+def config() -> dict:
+    return json.loads(CONFIG.read_text())
+
+
+def api_model(cfg: dict | None = None):
+    """A ``CNMPModel`` with the training config's model, sampling and learning-rate settings."""
+    from lerobot_cnmp.api import CNMPModel
+
+    pol = (cfg or config())["policy"]
+    return CNMPModel(**{k: pol[k] for k in API_FIELDS if k in pol})
+
+
+def checkpoint_or_train(path: str | Path | None, out_dir: Path, steps: int | None = None) -> Path:
+    """``path`` if it is a checkpoint; else fit the config's CNMP with the in-memory API for the config's
+    steps and batch size (the same model, sampling and schedule as ``lerobot-train``; whole demos instead
+    of windows) and save it to ``out_dir``."""
+    if path is not None and (Path(path) / "config.json").is_file():
+        return Path(path)
+    from lerobot_cnmp.data import load_demos
+
+    cfg = config()
+    steps = steps or cfg["steps"]
+    print(f"no checkpoint at {path}: fitting the config's CNMP with the in-memory API ({steps} steps)")
+    model = api_model(cfg).fit(load_demos(DATASET)["demos"], steps=steps, batch_size=cfg["batch_size"],
+                               seed=cfg.get("seed", 0))
+    return model.save(out_dir)

@@ -1,0 +1,47 @@
+"""The benchmark protocols' own logic (data, test draws, scores); the figures themselves live in bench/."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import sine_benchmark as sine  # noqa: E402
+from time_to_error import first_below  # noqa: E402
+
+
+def test_sine_data_follows_the_protocol():
+    demos, modes, means = sine.make_sines(np.random.default_rng(0))
+    assert demos.shape == (128, 200) and np.bincount(modes).tolist() == [32] * 4
+    assert demos.min() >= 0.0 and demos.max() <= 1.03  # (sin + 1) / 2 plus positive noise
+    # Modes 0/2 and 1/3 end at nearly the same value: the end point alone does not name the mode.
+    assert abs(means[0, -1] - means[2, -1]) < 0.05 and abs(means[1, -1] - means[3, -1]) < 0.05
+    assert abs(means[0, -1] - means[1, -1]) > 0.8
+
+
+def test_sine_tests_sit_between_two_close_modes():
+    _, _, means = sine.make_sines(np.random.default_rng(0))
+    tests = sine.draw_tests(means, np.random.default_rng(1))
+    assert len(tests) == sine.N_TESTS
+    for k, y0 in tests:
+        assert k < 150
+        # y0 lies between two mode means that are within 0.1 of each other at that step
+        gaps = [(a, b) for a in range(4) for b in range(4) if a < b and abs(means[a, k] - means[b, k]) < 0.1
+                and min(means[a, k], means[b, k]) <= y0 <= max(means[a, k], means[b, k])]
+        assert gaps
+    sets = sine.condition_sets(tests, means)
+    assert len(sets) == 4 * sine.N_TESTS and all(len(c) == 2 and c[1].phase == 1.0 for c in sets)
+
+
+def test_nearest_demo_score():
+    demos, _, _ = sine.make_sines(np.random.default_rng(0))
+    assert sine.nearest_demo_error(demos[7], demos) == 0.0
+    assert sine.nearest_demo_error(demos[7] + 0.1, demos) <= 0.1 + 1e-9
+    assert sine.score([demos[0], demos[1] + 0.05], demos)[0] <= 0.025 + 1e-9
+
+
+def test_first_below():
+    pts = [(100, 1.0, 0.5), (200, 2.0, 0.02), (300, 3.0, 0.01)]
+    assert first_below(pts, 0.03) == (200, 2.0)
+    assert first_below(pts, 0.001) == (None, None)
