@@ -12,12 +12,20 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
-from lerobot.optim import AdamConfig, CosineDecayWithWarmupSchedulerConfig
+from lerobot.optim import AdamConfig, CosineDecayWithWarmupSchedulerConfig, OptimizerConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 TASK_PARAMS = "observation.task_params"
 """Fixed name of the per-episode task-parameter feature γ (dataset feature and env observation
 ``task_params``)."""
+
+
+@OptimizerConfig.register_subclass("cnmp_adam")
+@dataclass
+class CNMPAdamConfig(AdamConfig):
+    """LeRobot's Adam with torch's ``fused`` switch (``lerobot-train`` saves it as ``"type": "cnmp_adam"``)."""
+
+    fused: bool = True
 
 
 @PreTrainedConfig.register_subclass("cnmp")
@@ -71,6 +79,8 @@ class CNMPConfig(PreTrainedConfig):
             where the demonstrations vary more (the paper's compliance proposal), clipped to [kp_min, kp_max].
         optimizer_lr: Adam learning rate (the paper: 1e-4 with batch 1; batched training tolerates more).
         optimizer_grad_clip_norm: Gradient clipping used by ``lerobot-train``.
+        optimizer_fused: Use torch's fused Adam kernel (one kernel for all parameters instead of ~10 small
+            ops per tensor: a training step at batch 1 on CPU drops by ~0.7 ms). Same algorithm.
         scheduler_decay_lr: Cosine-decay the learning rate from ``optimizer_lr`` to this value over the whole
             run (``--steps``); None keeps it constant (the paper).
 
@@ -117,6 +127,7 @@ class CNMPConfig(PreTrainedConfig):
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 0.0
     optimizer_grad_clip_norm: float = 10.0
+    optimizer_fused: bool = True
     scheduler_decay_lr: float | None = 1e-5
 
     normalization_mapping: dict[str, NormalizationMode] = field(
@@ -195,10 +206,11 @@ class CNMPConfig(PreTrainedConfig):
         return None
 
     def get_optimizer_preset(self) -> AdamConfig:
-        return AdamConfig(
+        return CNMPAdamConfig(
             lr=self.optimizer_lr,
             weight_decay=self.optimizer_weight_decay,
             grad_clip_norm=self.optimizer_grad_clip_norm,
+            fused=self.optimizer_fused,
         )
 
     def get_scheduler_preset(self) -> CosineDecayWithWarmupSchedulerConfig | None:

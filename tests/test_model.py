@@ -327,3 +327,10 @@ def test_fit_callback_sees_progress_and_can_stop():
     assert not model.policy.training and model.history[-1]["step"] < 20
     with pytest.raises(ValueError, match="callback_every"):
         CNMPModel().fit(toy_demos(), steps=5, callback_every=0)
+
+
+def test_optimizer_preset_is_fused_adam_and_switchable():
+    params = [torch.nn.Parameter(torch.zeros(3))]
+    assert CNMPConfig().get_optimizer_preset().build(params).defaults["fused"] is True
+    off = CNMPConfig(optimizer_fused=False).get_optimizer_preset()
+    assert off.type == "cnmp_adam" and not off.build(params).defaults["fused"]
