@@ -11,12 +11,13 @@ DATASET = REPO / "datasets" / "cnmp_obstacle2d"
 CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pretrained_model"
 
 API_FIELDS = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_targets", "context_in_targets",
-              "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr")
+              "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
+              "feedback_dims")
 """The config's policy fields that the in-memory API takes over (model, sampling, optimizer)."""
 
 
-def config() -> dict:
-    return json.loads(CONFIG.read_text())
+def config(path: Path = CONFIG) -> dict:
+    return json.loads(Path(path).read_text())
 
 
 def api_model(cfg: dict | None = None):
@@ -27,17 +28,19 @@ def api_model(cfg: dict | None = None):
     return CNMPModel(**{k: pol[k] for k in API_FIELDS if k in pol})
 
 
-def checkpoint_or_train(path: str | Path | None, out_dir: Path, steps: int | None = None) -> Path:
+def checkpoint_or_train(path: str | Path | None, out_dir: Path, steps: int | None = None,
+                        config_path: Path = CONFIG) -> Path:
     """``path`` if it is a checkpoint; else fit the config's CNMP with the in-memory API for the config's
     steps and batch size (the same model, sampling and schedule as ``lerobot-train``; whole demos instead
-    of windows) and save it to ``out_dir``."""
+    of windows; γ when the dataset has it) and save it to ``out_dir``."""
     if path is not None and (Path(path) / "config.json").is_file():
         return Path(path)
     from lerobot_cnmp.data import load_demos
 
-    cfg = config()
+    cfg = config(config_path)
     steps = steps or cfg["steps"]
-    print(f"no checkpoint at {path}: fitting the config's CNMP with the in-memory API ({steps} steps)")
-    model = api_model(cfg).fit(load_demos(DATASET)["demos"], steps=steps, batch_size=cfg["batch_size"],
-                               seed=cfg.get("seed", 0))
+    print(f"no checkpoint at {path}: fitting {Path(config_path).name}'s CNMP with the in-memory API ({steps} steps)")
+    data = load_demos(REPO / cfg["dataset"]["root"])
+    model = api_model(cfg).fit(data["demos"], task_params=data["task_params"], steps=steps,
+                               batch_size=cfg["batch_size"], seed=cfg.get("seed", 0))
     return model.save(out_dir)

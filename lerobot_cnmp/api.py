@@ -116,7 +116,9 @@ class CNMPModel:
             )
         if self.policy is None:
             flat = values[valid]
-            self.sm_mean, self.sm_std = flat.mean(0), np.maximum(flat.std(0), 1e-6)
+            from lerobot_cnmp.processor_cnmp import floored_sm_std
+
+            self.sm_mean, self.sm_std = flat.mean(0), floored_sm_std(flat.std(0))
             if gamma is not None:
                 self.task_mean, self.task_std = gamma.mean(0), np.maximum(gamma.std(0), 1e-6)
             lengths = valid.sum(1)

@@ -21,13 +21,27 @@ from lerobot_cnmp.conditions import slot_size
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
 
 
+STD_FLOOR = 1e-2
+"""An SM dim's normalization std is at least this fraction of the largest SM dim's std."""
+
+
 def _as_np(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
+def floored_sm_std(std) -> np.ndarray:
+    """The SM (action) std used for normalization: a dim that barely moves (e.g. a wrist held at one angle,
+    whose std is IK round-off) would otherwise be scaled up to unit variance, and its noise, far below the
+    model's σ floor, would dominate the NLL and its gradients."""
+    std = _as_np(std).astype(np.float32).reshape(-1)
+    floor = max(STD_FLOOR * float(std.max()) if std.size else 0.0, 1e-6)
+    return np.maximum(std, floor).astype(np.float32)
+
+
 def sm_normalization_stats(config: CNMPConfig, dataset_stats: dict[str, dict[str, Any]] | None) -> dict | None:
     """Dataset statistics with ``observation.state`` and the condition values of
-    ``observation.environment_state`` expressed in the action (SM) statistics.
+    ``observation.environment_state`` expressed in the action (SM) statistics, whose std is floored
+    (:func:`floored_sm_std`).
 
     Condition slots are ``[present, phase, values(D), mask(D)]``: only the values are shifted/scaled; the
     flags, phases and masks get mean 0 / std 1 and pass unchanged."""
@@ -37,10 +51,11 @@ def sm_normalization_stats(config: CNMPConfig, dataset_stats: dict[str, dict[str
         raise KeyError(f"dataset statistics need mean and std of {ACTION!r}; got {sorted(dataset_stats)}")
     stats = {k: dict(v) for k, v in dataset_stats.items()}
     mean = _as_np(dataset_stats[ACTION]["mean"]).astype(np.float32).reshape(-1)
-    std = _as_np(dataset_stats[ACTION]["std"]).astype(np.float32).reshape(-1)
+    std = floored_sm_std(dataset_stats[ACTION]["std"])
     d = config.sm_dim
     if mean.shape != (d,):
         raise ValueError(f"action statistics have {mean.shape[0]} dims, the policy's SM has {d}")
+    stats[ACTION] = {**stats[ACTION], "std": std.copy()}
     if config.robot_state_feature is not None:
         stats[OBS_STATE] = {"mean": mean.copy(), "std": std.copy()}
     env = config.env_state_feature

@@ -112,14 +112,14 @@ Conditions used while recording: `{conditions}`.
 ## Episodes
 
 {n_episodes} episodes of {spec.demo_length} frames each at {cfg.fps} fps
-({spec.demo_length / cfg.fps:.2f} s per episode), every one checked to succeed (goal reached, conditions
-passed, no obstacle contact).
+({spec.demo_length / cfg.fps:.2f} s per episode), every one checked to succeed in the sim (its
+`info["is_success"]`, see above).
 
-| mode | episodes |
+| episode label | episodes |
 |---|---|
 {count_rows}
 
-| episode | reset seed | mode | conditions |
+| episode | reset seed | label | conditions |
 |---|---|---|---|
 {ep_rows}
 
@@ -130,9 +130,7 @@ passed, no obstacle contact).
 {feat_rows}
 
 Each frame holds the observation *before* the action and the action commanded at that step (the
-position-servo target). `observation.environment_state` holds the episode's conditions, constant within an
-episode, in the layout of `lerobot_cnmp.conditions` with SM dimension 2 and 4 slots: slot k is
-`[present, phase, x, y, mask_x, mask_y]` (unused slots all zeros; `mask` marks the constrained dims).
+position-servo target). {spec.features_note}
 
 ## Regenerate
 
@@ -189,7 +187,7 @@ def record_dataset(
         raise FileExistsError(f"dataset folder {root} already exists; pass overwrite=True (--overwrite) to replace it")
 
     cfg = spec.env_config_cls(
-        conditions=conditions,
+        **spec.config_kwargs(conditions),
         render_mode=None,
         terminate_on_success=False,
         episode_length=spec.demo_length,

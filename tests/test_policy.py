@@ -392,3 +392,49 @@ def test_new_batch_of_envs_starts_at_phase_zero(policy_and_data):
     policy.select_action(obs)
     torch.testing.assert_close(policy._phase, torch.zeros(2))
     torch.testing.assert_close(policy._start, obs[OBS_STATE])
+
+
+def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
+    """γ leaves the env as environment_state, the env preprocessor renames it observation.task_params, the
+    policy (built from the pick-and-place dataset, untrained) conditions on it, and a changed γ changes
+    the prediction."""
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+
+    from lerobot_cnmp.configuration_cnmp import TASK_PARAMS
+    from lerobot_cnmp.envs.configs import CNMPPickPlaceEnv
+
+    root = REPO / "datasets" / "cnmp_pickplace"
+    pp_meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_pickplace", root=root)
+    cfg = small_config(feedback_dims=(0, 1, 2, 3, 4, 5))
+    policy = make_policy(cfg, ds_meta=pp_meta)
+    assert policy.config.task_dim == 2 and policy.config.sm_dim == 7
+    pre, post = make_cnmp_pre_post_processors(policy.config, pp_meta.stats)
+    seen = []
+    env_cfg = CNMPPickPlaceEnv(task_params=(3.0, 6.0), render_mode=None, episode_length=5)
+    env = next(iter(make_env(env_cfg, n_envs=1)[env_cfg.type].values()))
+    env_pre, env_post = make_env_pre_post_processors(env_cfg, policy.config)
+    original = policy.select_action
+
+    def spy(batch, **kw):
+        seen.append(batch[TASK_PARAMS].clone())
+        return original(batch, **kw)
+
+    policy.select_action = spy
+    try:
+        data = rollout(env, policy, env_pre, env_post, pre, post, seeds=[0])
+    finally:
+        del policy.select_action
+        env.close()
+    assert data["action"].shape[-1] == 7 and len(seen) == 5
+    gamma_std = np.asarray(pp_meta.stats[TASK_PARAMS]["std"])
+    gamma_mean = np.asarray(pp_meta.stats[TASK_PARAMS]["mean"])
+    np.testing.assert_allclose(seen[0][0].numpy() * gamma_std + gamma_mean, [3.0, 6.0], atol=1e-5)  # normalized γ
+    # the policy uses γ: another γ, same state, another prediction
+    batch = pre({OBS_STATE: torch.zeros(1, 7), TASK_PARAMS: torch.tensor([[3.0, 6.0]])})
+    other = pre({OBS_STATE: torch.zeros(1, 7), TASK_PARAMS: torch.tensor([[9.0, 11.0]])})  # extrapolated: accepted
+    policy.reset()
+    a = policy.predict_action_chunk(batch)
+    policy.reset()
+    b = policy.predict_action_chunk(other)
+    assert not torch.allclose(a, b)

@@ -7,7 +7,8 @@ from typing import Any, Callable
 
 import gymnasium as gym
 
-from lerobot_cnmp.envs.configs import OBSTACLE2D_GYM_ID, CNMPObstacle2DEnv
+from lerobot_cnmp.envs import pickplace
+from lerobot_cnmp.envs.configs import OBSTACLE2D_GYM_ID, PICKPLACE_GYM_ID, CNMPObstacle2DEnv, CNMPPickPlaceEnv
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
 
 if OBSTACLE2D_GYM_ID not in gym.registry:
@@ -15,6 +16,12 @@ if OBSTACLE2D_GYM_ID not in gym.registry:
         id=OBSTACLE2D_GYM_ID,
         entry_point="lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv",
         max_episode_steps=DEFAULT_MAX_EPISODE_STEPS,
+    )
+if PICKPLACE_GYM_ID not in gym.registry:
+    gym.register(
+        id=PICKPLACE_GYM_ID,
+        entry_point="lerobot_cnmp.envs.pickplace:PickPlaceEnv",
+        max_episode_steps=pickplace.DEFAULT_MAX_EPISODE_STEPS,
     )
 
 
@@ -42,6 +49,8 @@ class SimSpec:
             the config's ``conditions`` (e.g. to balance modes).
         episode_label: ``env.unwrapped -> str`` label of the recorded episode for the dataset card.
         description: markdown paragraph about the sim for the dataset card.
+        features_note: markdown paragraph about the recorded features for the dataset card.
+        config_kwargs: ``conditions -> kwargs`` of ``env_config_cls`` for recording with those conditions.
     """
 
     env_config_cls: type
@@ -53,6 +62,8 @@ class SimSpec:
     reset_options: Callable[[int, str], dict[str, Any] | None] = lambda i, conditions: None
     episode_label: Callable[[Any], str] = lambda env: ""
     description: str = ""
+    features_note: str = ""
+    config_kwargs: Callable[[str], dict[str, Any]] = lambda conditions: {"conditions": conditions}
 
 
 def _obstacle2d_reset_options(i: int, conditions: str) -> dict[str, Any] | None:
@@ -79,6 +90,11 @@ def _obstacle2d_spec() -> SimSpec:
         },
         reset_options=_obstacle2d_reset_options,
         episode_label=lambda env: env.task.mode_name,
+        features_note=(
+            "`observation.environment_state` holds the episode's conditions, constant within an episode, in "
+            "the layout of `lerobot_cnmp.conditions` with SM dimension 2 and 4 slots: slot k is "
+            "`[present, phase, x, y, mask_x, mask_y]` (unused slots all zeros; `mask` marks the constrained dims)."
+        ),
         description=(
             "A MuJoCo point mass (sphere, radius 0.03, mass 1) moves in the plane under position control "
             "(two slide joints, critically damped position servos, 2 ms physics step, 10 physics steps "
@@ -94,6 +110,53 @@ def _obstacle2d_spec() -> SimSpec:
     )
 
 
-SIMS: dict[str, SimSpec] = {"cnmp_obstacle2d": _obstacle2d_spec()}
+def _pickplace_reset_options(i: int, conditions: str) -> dict[str, Any]:
+    # the paper's 8 training demos: object {2, 6} cm x obstacle {2, 4, 6, 8} cm, in turn
+    grid = pickplace.PAPER_TRAIN_GRID
+    return {"task_params": grid[i % len(grid)]}
 
-__all__ = ["CNMPObstacle2DEnv", "SIMS", "SimSpec", "OBSTACLE2D_GYM_ID", "ENV_STATE_DIM"]
+
+def _pickplace_config_kwargs(conditions: str) -> dict[str, Any]:
+    if conditions != "grid":
+        raise ValueError(f"cnmp_pickplace records the paper's gamma grid only (conditions 'grid'), got {conditions!r}")
+    return {}
+
+
+def _pickplace_spec() -> SimSpec:
+    from lerobot_cnmp.experts.pickplace import PickPlaceExpert
+
+    joints = [*pickplace.JOINT_NAMES, "gripper"]
+    return SimSpec(
+        env_config_cls=CNMPPickPlaceEnv,
+        expert_cls=PickPlaceExpert,
+        demo_length=pickplace.DEMO_LENGTH,
+        default_episodes=len(pickplace.PAPER_TRAIN_GRID),
+        default_conditions="grid",
+        feature_names={"action": joints, "agent_pos": joints, "environment_state": ["object_cm", "obstacle_cm"]},
+        reset_options=_pickplace_reset_options,
+        episode_label=lambda env: "gamma=({:g}, {:g})".format(*env.task_params),
+        features_note=(
+            "`observation.task_params` holds gamma = (object height, obstacle height) in cm, constant within "
+            "an episode; `observation.state` the measured joint angles (rad) and gripper closure in [0, 1]; "
+            "`action` the commanded joint angles and gripper command."
+        ),
+        config_kwargs=_pickplace_config_kwargs,
+        description=(
+            "A MuJoCo arm with the UR10's published DH kinematics (6 position-servoed joints, gravity "
+            "compensated, 50 Hz control) and a parallel two-finger gripper picks a 4 x 4 cm box of height "
+            "gamma_object cm from (0.70, -0.25) and places it on a 10 x 10 cm target area at (0.70, 0.25), "
+            "carrying it along an arc over a 2 cm thick wall of height gamma_obstacle cm standing between "
+            "them, as in the pick-and-place experiment of Seker et al. (RSS 2019, Sec. IV-C). The grasp is "
+            "physical (friction of the finger pads only). A scripted expert plans the tool point in "
+            "Cartesian space (grasp height linear in the object height, arc apex with the object 5 cm "
+            "above the wall top, fixed phase timing, minimum-jerk segments) and converts it to joint angles by damped-least-squares IK "
+            "on MuJoCo Jacobians; the SM is the 6 joint angles (radians) plus the gripper command in [0, 1], "
+            "and gamma is stored as observation.task_params (cm)."
+        ),
+    )
+
+
+SIMS: dict[str, SimSpec] = {"cnmp_obstacle2d": _obstacle2d_spec(), "cnmp_pickplace": _pickplace_spec()}
+
+__all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "SIMS", "SimSpec", "OBSTACLE2D_GYM_ID", "PICKPLACE_GYM_ID",
+           "ENV_STATE_DIM"]

@@ -1,4 +1,4 @@
-"""LeRobot ``EnvConfig`` for the CNMP sims (``--env.type=cnmp_obstacle2d``)."""
+"""LeRobot ``EnvConfig``s for the CNMP sims (``--env.type=cnmp_obstacle2d``, ``--env.type=cnmp_pickplace``)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,10 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
+from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_cnmp.configuration_cnmp import TASK_PARAMS
 
 from lerobot_cnmp.envs.obstacle2d import (
     CONDITION_CHOICES,
@@ -17,6 +20,7 @@ from lerobot_cnmp.envs.obstacle2d import (
 )
 
 OBSTACLE2D_GYM_ID = "cnmp/Obstacle2D-v0"
+PICKPLACE_GYM_ID = "cnmp/PickPlace-v0"
 
 
 @EnvConfig.register_subclass("cnmp_obstacle2d")
@@ -97,3 +101,77 @@ class CNMPObstacle2DEnv(EnvConfig):
             "terminate_on_success": self.terminate_on_success,
             "max_episode_steps": self.episode_length,
         }
+
+
+@EnvConfig.register_subclass("cnmp_pickplace")
+@dataclass
+class CNMPPickPlaceEnv(EnvConfig):
+    """UR10-like arm picking a box and placing it beyond a wall (CNMP paper, Sec. IV-C).
+
+    The task parameters γ = (object height, obstacle height) in cm come out of the env as
+    ``environment_state`` (the vector LeRobot's rollout passes through) and reach the policy as
+    ``observation.task_params`` (renamed by this env's preprocessor), the feature the dataset stores them in.
+
+    Fields:
+        task: gymnasium task name (the id is ``cnmp/<task>``).
+        fps: control frequency, Hz.
+        episode_length: steps before truncation (the demonstrated motion takes 200).
+        task_params: a fixed γ (object_cm, obstacle_cm) for every episode; None (default) draws γ uniformly
+            from the training range, object in [2, 6] cm and obstacle in [2, 8] cm.
+        render_mode: ``rgb_array`` (for eval videos) or ``None``.
+        render_size: side of the rendered square image, pixels.
+        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+    """
+
+    task: str | None = "PickPlace-v0"
+    fps: int = 50
+    episode_length: int = 250
+    task_params: tuple[float, float] | None = None
+    render_mode: str | None = "rgb_array"
+    render_size: int = 256
+    terminate_on_success: bool = True
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(7,)),
+            "environment_state": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE, "environment_state": TASK_PARAMS}
+    )
+
+    def __post_init__(self):
+        if self.task != "PickPlace-v0":
+            raise ValueError(f"unknown task {self.task!r} for cnmp_pickplace; choose 'PickPlace-v0'")
+        if self.task_params is not None and len(self.task_params) != 2:
+            raise ValueError(f"task_params must be (object_cm, obstacle_cm), got {self.task_params}")
+        if self.render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
+        if self.episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
+        if self.render_size < 16:
+            raise ValueError(f"render_size must be >= 16, got {self.render_size}")
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_cnmp.envs"
+
+    @property
+    def gym_id(self) -> str:
+        return PICKPLACE_GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            "task_params": None if self.task_params is None else tuple(float(v) for v in self.task_params),
+            "render_mode": self.render_mode,
+            "render_size": self.render_size,
+            "terminate_on_success": self.terminate_on_success,
+            "max_episode_steps": self.episode_length,
+        }
+
+    def get_env_processors(self):
+        """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``."""
+        rename = RenameObservationsProcessorStep(rename_map={OBS_ENV_STATE: TASK_PARAMS})
+        return PolicyProcessorPipeline(steps=[rename]), PolicyProcessorPipeline(steps=[])
