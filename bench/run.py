@@ -1,11 +1,11 @@
-"""The whole benchmark suite in one run: accuracy (obstacle, sines), speed, time to error, memory.
+"""The whole benchmark suite in one run: accuracy (obstacle, sines, Table I), speed, time to error, memory.
 
     python bench/run.py [--out outputs/bench]
 
 Runs each ``bench/*.py`` script in its own process, in sequence (one at a time, so timings do not
 compete for the 2 cores), keeps each one's full output under ``--out`` and merges the JSON objects they
 print last. Prints a table of the headline figures (markdown, ready for the README) and, as its last line,
-one JSON object. About 12 min on 2 CPU cores.
+one JSON object. About 8 min on 2 CPU cores with trained checkpoints, 11 min without.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ SCRIPTS = [
     ("train_speed.py", []),
     ("time_to_error.py", []),
     ("memory.py", []),
+    ("table1.py", []),
 ]
 
 HEADLINE = [
@@ -56,6 +57,9 @@ HEADLINE = [
     ("peak_rss_inference_mb", "Peak RSS, lerobot-eval", "MB", ""),
     ("peak_rss_inference_api_mb", "Peak RSS, API inference", "MB", ""),
     ("rss_imports_only_mb", "RSS of the imports alone (torch, LeRobot)", "MB", ""),
+    ("interp_max_err_deg", "Pick and place: worst joint error, interpolation γ (paper 0.28)", "deg", "≤ 0.28"),
+    ("extrap_7_9_max_err_deg", "Pick and place: worst joint error, γ = (7, 9) (paper 3.69)", "deg", "≤ 2"),
+    ("interp_success_pct", "Pick and place: executed, random interpolation γ", "%", "100"),
 ]
 
 REQUIRED = ("control_step_p50_ms", "trajectory_200_ms", "sine_error_cnmp", "sine_error_promp",
