@@ -3,9 +3,11 @@
     python bench/latency.py [--calls 2000]
 
 Figures on CPU with 1 torch thread, same policy and observation stream, p50 over ``--calls`` calls:
-- ``control_step_p50_ms``: in-process, the pure-torch CNMP (encode + aggregate + decode) on a ready context
-  of the policy's execution (2 conditions, the start state, the sensed state), one query;
+- ``control_step_p50_ms``: in-process, the network the policy executes (``CNMPPolicy.executor()``: on
+  CPU the numpy copy ``NumpyCNMP``) on a ready context of the policy's execution (2 conditions, the start
+  state, the sensed state), one query: encode + aggregate + decode;
 - ``trajectory_200_ms``: the same context, a whole 200-step trajectory with σ (200 queries in one call);
+- ``*_torch_*``: the same two with the torch model (``--policy.numpy_execution=false``, and training);
 - ``select_action_p50_ms``: what ``lerobot-eval`` runs per step: preprocessor (normalize, batch, device) ->
   ``CNMPPolicy.select_action`` -> postprocessor (unnormalize).
 The calls run in ``--rounds`` interleaved rounds; the spread of the round p50s shows how much the machine
@@ -78,11 +80,19 @@ def main() -> dict:
     query = torch.full((1, 1), 0.3)
     trajectory = torch.linspace(0, 1, 200)[None]
 
+    executor = policy.executor()
+
     def control_step():
+        executor(ctx, query)
+
+    def trajectory_200():
+        executor(ctx, trajectory)
+
+    def control_step_torch():
         with torch.inference_mode():
             policy.model(ctx, query)
 
-    def trajectory_200():
+    def trajectory_200_torch():
         with torch.inference_mode():
             policy.model(ctx, trajectory)
 
@@ -91,20 +101,25 @@ def main() -> dict:
             post(policy.select_action(pre(dict(obs))))
 
     policy.reset()
-    fns = {"control_step": control_step, "trajectory_200": trajectory_200, "select_action": select_action}
+    fns = {"control_step": control_step, "trajectory_200": trajectory_200, "select_action": select_action,
+           "control_step_torch": control_step_torch, "trajectory_200_torch": trajectory_200_torch}
     t = interleaved_p50(fns, args.calls, args.rounds)
     res = {
         "control_step_p50_ms": round(t["control_step"][0], 4),
         "trajectory_200_ms": round(t["trajectory_200"][0], 4),
         "select_action_p50_ms": round(t["select_action"][0], 4),
+        "control_step_torch_p50_ms": round(t["control_step_torch"][0], 4),
+        "trajectory_200_torch_ms": round(t["trajectory_200_torch"][0], 4),
+        "executor": type(executor).__name__,
         **{f"{k}_round_p50s_ms": [round(v, 4) for v in t[k][1]] for k in fns},
         "calls": args.calls,
         "context_points": int(ctx.valid.sum()),
         "torch_threads": torch.get_num_threads(),
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU",
     }
-    labels = {"control_step": "control step (torch)", "trajectory_200": "200-step trajectory + σ",
-              "select_action": "select_action + procs"}
+    labels = {"control_step": "control step", "trajectory_200": "200-step trajectory + σ",
+              "select_action": "select_action + procs", "control_step_torch": "control step, torch",
+              "trajectory_200_torch": "200-step traj., torch"}
     print(f"{'figure':<26}{'p50 (ms)':>10}   rounds' p50s")
     for k, label in labels.items():
         print(f"{label:<26}{t[k][0]:>10.4f}   {' '.join(f'{v:.3f}' for v in t[k][1])}")

@@ -8,7 +8,7 @@ import torch
 
 from lerobot_cnmp.api import CNMPModel, Condition, pad_demos
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.modeling_cnmp import CNMP, Context, Episodes, Targets, sample_context_and_targets
+from lerobot_cnmp.modeling_cnmp import CNMP, Context, Episodes, NumpyCNMP, Targets, sample_context_and_targets
 
 
 def toy_demos(n=8, t=50, seed=0):
@@ -334,3 +334,17 @@ def test_optimizer_preset_is_fused_adam_and_switchable():
     assert CNMPConfig().get_optimizer_preset().build(params).defaults["fused"] is True
     off = CNMPConfig(optimizer_fused=False).get_optimizer_preset()
     assert off.type == "cnmp_adam" and not off.build(params).defaults["fused"]
+
+
+@pytest.mark.parametrize("task_dim,freqs", [(0, 0), (2, 0), (1, 3)])
+def test_numpy_executor_equals_the_torch_model(task_dim, freqs):
+    torch.manual_seed(2)
+    m = CNMP(sm_dim=2, task_dim=task_dim, encoder_layers=(16, 8), decoder_layers=(16, 16), phase_frequencies=freqs)
+    ctx = random_context(b=3, n=5, g=task_dim)
+    ctx.valid[1, 3:] = False  # padded entries must not count
+    q = torch.rand(3, 7)
+    with torch.no_grad():
+        mean, std = m(ctx, q)
+    n_mean, n_std = NumpyCNMP(m)(ctx, q)
+    torch.testing.assert_close(n_mean, mean, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(n_std, std, atol=1e-5, rtol=1e-5)

@@ -438,3 +438,32 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
     policy.reset()
     b = policy.predict_action_chunk(other)
     assert not torch.allclose(a, b)
+
+
+def test_numpy_execution_matches_torch_and_follows_weight_changes(policy_and_data):
+    policy, _ = policy_and_data
+    policy.eval()
+    env = torch.from_numpy(encode_conditions([Condition(0.5, (0.5, 0.4))], 2, 4))[None]
+    batch = {OBS_STATE: torch.tensor([[0.1, 0.2]]), OBS_ENV_STATE: env}
+
+    def actions(numpy_execution: bool) -> torch.Tensor:
+        policy.config.numpy_execution = numpy_execution
+        policy.reset()
+        return torch.stack([policy.select_action(dict(batch)) for _ in range(3)])
+
+    try:
+        assert not isinstance(policy.executor(), torch.nn.Module)
+        torch.testing.assert_close(actions(True), actions(False), atol=1e-5, rtol=1e-5)
+        before = actions(True)
+        with torch.no_grad():  # a weight update (as an optimizer step makes) must reach the numpy copy
+            policy.model.decoder[-1].bias.add_(0.5)
+        after = actions(True)
+        torch.testing.assert_close(after, actions(False), atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(before, after)
+        policy.train()
+        assert policy.executor() is policy.model  # training runs torch
+    finally:
+        with torch.no_grad():
+            policy.model.decoder[-1].bias.sub_(0.5)
+        policy.config.numpy_execution = True
+        policy.eval()

@@ -12,9 +12,9 @@ class PickPlaceExpert:
 
     At step ``k`` the action is the reference's row ``min(k, T - 1)``: six joint targets (rad) and the
     gripper command in [0, 1]. The reference is planned in Cartesian space (home -> above the object ->
-    grasp at a height linear in the object's (see grasp_height) -> close -> lift -> arc clearing the wall top by 5 cm -> lower onto the
-    target -> open -> retreat) with fixed phase timing and converted to joints by IK, so it is a smooth
-    function of gamma. The recorded states are what the simulated arm did under this controller.
+    grasp at a height linear in the object's (``grasp_height``) -> close -> lift -> arc with the object
+    5 cm above the wall top -> lower onto the target -> open -> retreat) with fixed phase timing and
+    converted to joints by IK, so it is a smooth function of gamma. The recorded states are what the simulated arm did under this controller.
 
     Args:
         env: the unwrapped :class:`~lerobot_cnmp.envs.pickplace.PickPlaceEnv` (after ``reset``).
