@@ -23,9 +23,34 @@ OBSTACLE2D_GYM_ID = "cnmp/Obstacle2D-v0"
 PICKPLACE_GYM_ID = "cnmp/PickPlace-v0"
 
 
+@dataclass
+class CNMPSimConfig(EnvConfig):
+    """What the CNMP sims' configs share (not an env type itself): rendering and episode options."""
+
+    def _check_common(self) -> None:
+        if self.render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
+        if self.episode_length < 1:
+            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
+        if self.render_size < 16:
+            raise ValueError(f"render_size must be >= 16, got {self.render_size}")
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_cnmp.envs"
+
+    def _common_gym_kwargs(self) -> dict:
+        return {
+            "render_mode": self.render_mode,
+            "render_size": self.render_size,
+            "terminate_on_success": self.terminate_on_success,
+            "max_episode_steps": self.episode_length,
+        }
+
+
 @EnvConfig.register_subclass("cnmp_obstacle2d")
 @dataclass
-class CNMPObstacle2DEnv(EnvConfig):
+class CNMPObstacle2DEnv(CNMPSimConfig):
     """2D point mass avoiding a round obstacle, over or under it (CNMP paper, Sec. IV-A).
 
     Fields:
@@ -76,16 +101,7 @@ class CNMPObstacle2DEnv(EnvConfig):
             raise ValueError(
                 f"unknown perturbation {self.perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
             )
-        if self.render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
-        if self.episode_length < 1:
-            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
-        if self.render_size < 16:
-            raise ValueError(f"render_size must be >= 16, got {self.render_size}")
-
-    @property
-    def package_name(self) -> str:
-        return "lerobot_cnmp.envs"
+        self._check_common()
 
     @property
     def gym_id(self) -> str:
@@ -96,16 +112,13 @@ class CNMPObstacle2DEnv(EnvConfig):
         return {
             "conditions": self.conditions,
             "perturbation": self.perturbation,
-            "render_mode": self.render_mode,
-            "render_size": self.render_size,
-            "terminate_on_success": self.terminate_on_success,
-            "max_episode_steps": self.episode_length,
+            **self._common_gym_kwargs(),
         }
 
 
 @EnvConfig.register_subclass("cnmp_pickplace")
 @dataclass
-class CNMPPickPlaceEnv(EnvConfig):
+class CNMPPickPlaceEnv(CNMPSimConfig):
     """UR10-like arm picking a box and placing it beyond a wall (CNMP paper, Sec. IV-C).
 
     The task parameters γ = (object height, obstacle height) in cm come out of the env as
@@ -146,16 +159,7 @@ class CNMPPickPlaceEnv(EnvConfig):
             raise ValueError(f"unknown task {self.task!r} for cnmp_pickplace; choose 'PickPlace-v0'")
         if self.task_params is not None and len(self.task_params) != 2:
             raise ValueError(f"task_params must be (object_cm, obstacle_cm), got {self.task_params}")
-        if self.render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
-        if self.episode_length < 1:
-            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
-        if self.render_size < 16:
-            raise ValueError(f"render_size must be >= 16, got {self.render_size}")
-
-    @property
-    def package_name(self) -> str:
-        return "lerobot_cnmp.envs"
+        self._check_common()
 
     @property
     def gym_id(self) -> str:
@@ -165,10 +169,7 @@ class CNMPPickPlaceEnv(EnvConfig):
     def gym_kwargs(self) -> dict:
         return {
             "task_params": None if self.task_params is None else tuple(float(v) for v in self.task_params),
-            "render_mode": self.render_mode,
-            "render_size": self.render_size,
-            "terminate_on_success": self.terminate_on_success,
-            "max_episode_steps": self.episode_length,
+            **self._common_gym_kwargs(),
         }
 
     def get_env_processors(self):

@@ -23,10 +23,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dataclasses import dataclass  # noqa: E402
 
-import gymnasium as gym  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
+
+from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
 
 from lerobot_cnmp.conditions import Condition, encode_conditions  # noqa: E402
 
@@ -219,7 +220,7 @@ def sample_episode(
     return task, conds, kind
 
 
-class Obstacle2DEnv(gym.Env):
+class Obstacle2DEnv(MujocoSimEnv):
     """Point mass around a round obstacle; see the module docstring.
 
     Args:
@@ -237,6 +238,7 @@ class Obstacle2DEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
+    camera = "top"
 
     def __init__(
         self,
@@ -253,22 +255,12 @@ class Obstacle2DEnv(gym.Env):
             raise ValueError(
                 f"unknown perturbation {perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
             )
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unknown render_mode {render_mode!r}; choose 'rgb_array' or None")
-        if int(render_size) < 16:
-            raise ValueError(f"render_size must be at least 16 pixels, got {render_size}")
         self.conditions_mode = conditions
         self.perturbation = perturbation
-        self.render_mode = render_mode
-        self.render_size = int(render_size)
-        self.terminate_on_success = bool(terminate_on_success)
-        if max_episode_steps is not None:
-            self._max_episode_steps = int(max_episode_steps)
-        self._self_truncate = max_episode_steps is not None
+        self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
 
         self.model = mujoco.MjModel.from_xml_string(MJCF)
         self.data = mujoco.MjData(self.model)
-        self._renderer = None
         self._obstacle_gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "obstacle")
         self._agent_gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "agent")
         self._goal_sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "goal")
@@ -366,25 +358,7 @@ class Obstacle2DEnv(gym.Env):
         if self._step == self._perturb_step:  # push: displaced now; hold: held for the next HOLD_STEPS
             self._start_perturbation()
         self._update_progress()
-        info = self._info()
-        success = info["is_success"]
-        terminated = bool(success and self.terminate_on_success)
-        truncated = bool(self._self_truncate and self._step >= self._max_episode_steps and not terminated)
-        reward = 1.0 if success else 0.0
-        return self._obs(), reward, terminated, truncated, info
-
-    def render(self):
-        if self.render_mode != "rgb_array":
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.render_size, self.render_size)
-        self._renderer.update_scene(self.data, camera="top")
-        return self._renderer.render().copy()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        return self._step_result()
 
     # --- internals -----------------------------------------------------------------------------------
     def _obs(self) -> dict:

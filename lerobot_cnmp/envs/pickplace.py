@@ -44,10 +44,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import functools  # noqa: E402
 
-import gymnasium as gym  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
+
+from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 CONTROL_FPS = 50
@@ -483,7 +484,7 @@ def reference_trajectory(
 
 
 # --- the env --------------------------------------------------------------------------------------------
-class PickPlaceEnv(gym.Env):
+class PickPlaceEnv(MujocoSimEnv):
     """UR10-like arm picking a box and placing it beyond a wall; see the module docstring.
 
     Args:
@@ -501,6 +502,7 @@ class PickPlaceEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
+    camera = "scene"
 
     def __init__(
         self,
@@ -510,21 +512,11 @@ class PickPlaceEnv(gym.Env):
         terminate_on_success: bool = True,
         max_episode_steps: int | None = None,
     ):
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unknown render_mode {render_mode!r}; choose 'rgb_array' or None")
-        if int(render_size) < 16:
-            raise ValueError(f"render_size must be at least 16 pixels, got {render_size}")
         self.fixed_task_params = None if task_params is None else check_task_params(task_params)
-        self.render_mode = render_mode
-        self.render_size = int(render_size)
-        self.terminate_on_success = bool(terminate_on_success)
-        if max_episode_steps is not None:
-            self._max_episode_steps = int(max_episode_steps)
-        self._self_truncate = max_episode_steps is not None
+        self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
 
         self.model = mujoco.MjModel.from_xml_string(MJCF)
         self.data = mujoco.MjData(self.model)
-        self._renderer = None
         m = self.model
 
         def gid(name):
@@ -653,25 +645,7 @@ class PickPlaceEnv(gym.Env):
         d.ctrl[ARM_POS_CTRL] = target
         self._last_command = target
         self._step += 1
-        info = self._info()
-        success = info["is_success"]
-        terminated = bool(success and self.terminate_on_success)
-        truncated = bool(self._self_truncate and self._step >= self._max_episode_steps and not terminated)
-        reward = 1.0 if success else 0.0
-        return self._obs(), reward, terminated, truncated, info
-
-    def render(self):
-        if self.render_mode != "rgb_array":
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.render_size, self.render_size)
-        self._renderer.update_scene(self.data, camera="scene")
-        return self._renderer.render().copy()
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        return self._step_result()
 
     # --- internals -----------------------------------------------------------------------------------
     def _apply_geometry(self):
