@@ -280,7 +280,18 @@ def load_pretrained(path: str | Path, device: str | None = None):
         kind = json.loads(cfg_file.read_text()).get("type")
         if kind != "cnmp":
             raise ValueError(f"the checkpoint at {path} is a {kind!r} policy, not a 'cnmp' one")
-    policy = CNMPPolicy.from_pretrained(path)
+    try:
+        policy = CNMPPolicy.from_pretrained(path)
+    except (FileNotFoundError, OSError) as e:
+        if Path(path).exists():
+            raise
+        from huggingface_hub import constants
+
+        offline = " (HF_HUB_OFFLINE=1)" if constants.HF_HUB_OFFLINE else ""
+        raise FileNotFoundError(
+            f"{path!r} is not a local checkpoint folder, and as a Hub repo id it could not be fetched: the Hub "
+            f"is unreachable{offline} and the repo is not in the local cache ({type(e).__name__})"
+        ) from e
     if device is not None:
         policy.config.device = device
         policy.to(device)

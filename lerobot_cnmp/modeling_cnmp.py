@@ -382,6 +382,68 @@ class CNMPPolicy(PreTrainedPolicy):
                 f"differ): {e}"
             ) from e
 
+    # ---- sharing --------------------------------------------------------------------------------------
+
+    def generate_model_card(self, dataset_repo_id, model_type="cnmp", license=None, tags=None, cfg=None,
+                            dataset_meta=None, eval_info: dict | None = None, repo_id: str | None = None):
+        """The model card of a CNMP checkpoint (used by ``lerobot-train --policy.push_to_hub=true`` and by
+        ``lerobot_cnmp.hub.push_checkpoint``): what it is, what it was trained on, its settings, its
+        evaluation figures when given, and how to run it. Built offline (no Hub validation call)."""
+        from huggingface_hub import ModelCard, ModelCardData
+
+        c = self.config
+        repo_id = repo_id or getattr(c, "repo_id", None) or "<repo_id>"
+        dataset_repo_id = dataset_repo_id or (cfg.dataset.repo_id if cfg is not None else None)
+        data = ModelCardData(
+            license=license or c.license or "apache-2.0", library_name="lerobot", pipeline_tag="robotics",
+            tags=sorted({"robotics", "lerobot", "cnmp", "movement-primitives", *(tags or c.tags or [])}),
+            datasets=dataset_repo_id, model_name="cnmp",
+        )
+        inputs = ", ".join(f"`{k}` {list(v.shape)}" for k, v in c.input_features.items())
+        trained = f"[{dataset_repo_id}](https://huggingface.co/datasets/{dataset_repo_id})" if dataset_repo_id else "(not recorded)"
+        steps = f", {cfg.steps} steps of batch {cfg.batch_size}" if cfg is not None else ""
+        groups = list((eval_info or {}).get("per_group", {}))  # lerobot-eval's eval_info names the env
+        env_type = groups[0] if groups else "<env type, e.g. cnmp_obstacle2d>"
+        results = "No evaluation figures were attached to this card."
+        if eval_info:
+            overall = eval_info.get("overall", eval_info)
+            results = (f"`lerobot-eval`: **pc_success {overall.get('pc_success')}** over "
+                       f"{overall.get('n_episodes')} episodes.")
+        body = f"""# CNMP policy `{repo_id}`
+
+A Conditional Neural Movement Primitive (Seker, Imre, Piater, Ugur, RSS 2019) trained with the
+lerobot-cnmp plugin as a LeRobot policy (`--policy.type=cnmp`): an encoder over
+observed (phase, SM) points, mean aggregation and a Gaussian query network predict the sensorimotor (SM)
+trajectory given any subset of SM points and task parameters γ; executed online with re-conditioning on
+the sensed state, PD tracking and phase stopping.
+
+## Training
+
+- Data: {trained}{steps}.
+- SM (`action`): {c.sm_dim} dims; inputs: {inputs}; task parameters γ: {c.task_dim} dims.
+- Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
+  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.
+- Every setting is in `config.json`; the normalization statistics are in the processor files.
+
+## Evaluation
+
+{results}
+
+## Use
+
+```bash
+pip install -e .   # in a lerobot-cnmp checkout: registers --policy.type=cnmp and its sims
+lerobot-eval --policy.path={repo_id} --env.type={env_type} --eval.n_episodes=50 --policy.device=cpu
+```
+
+```python
+from lerobot_cnmp.api import CNMPModel, load_pretrained
+policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the checkpoint's own statistics
+model = CNMPModel.load("{repo_id}")                                   # or the in-memory API
+```
+"""
+        return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")
+
     # ---- training -------------------------------------------------------------------------------------
 
     def set_episode_table(self, dataset_meta) -> None:

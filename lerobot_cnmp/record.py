@@ -296,7 +296,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repo_id", default=None, help="dataset repo id (default lerobot-cnmp/<sim>)")
     parser.add_argument("--conditions", default=None, help="the env's conditions option (sim default if omitted)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    parser.add_argument("--push_to_hub", action="store_true",
+                        help="then push the dataset to the Hub as --repo_id (LeRobotDataset.push_to_hub, with its card)")
+    parser.add_argument("--private", action="store_true", help="with --push_to_hub: a private repository")
     args = parser.parse_args(argv)
+    if args.push_to_hub:
+        from lerobot_cnmp.hub import _require_online
+
+        if args.repo_id is None:
+            parser.error("--push_to_hub needs --repo_id (e.g. you/my_cnmp_dataset)")
+        try:  # fail before recording, not after
+            _require_online(f"dataset {args.root}")
+        except RuntimeError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
     if args.sim not in SIMS:
         parser.error(f"unknown sim {args.sim!r}; choose one of {sorted(SIMS)}")
     if args.n_episodes is not None and args.n_episodes < 1:
@@ -315,6 +328,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"dataset written to {root}")
+    if args.push_to_hub:
+        from lerobot_cnmp.hub import HubUnavailableError, push_dataset
+
+        try:
+            print(f"dataset pushed to {push_dataset(root, args.repo_id, private=args.private)}")
+        except HubUnavailableError as e:
+            print(f"error: {e} (the local dataset is complete at {root})", file=sys.stderr)
+            return 1
     return 0
 
 
