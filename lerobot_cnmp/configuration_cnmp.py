@@ -60,6 +60,12 @@ class CNMPConfig(PreTrainedConfig):
             window_size / 2 frames of its episode at random phases. Loading cost is linear in it.
         use_task_params: Condition on γ (``observation.task_params``). None: use it when the dataset has it.
             True: require it (a dataset without it is rejected).
+        use_images: Condition on the image features (``observation.images.*``) through a conv encoder, as the
+            paper's Sec. IV-B does with a top-down mask of the room. None: when the dataset has images.
+            True: require them. Each image is embedded once per sample and joins γ as an episode-level input.
+        image_channels: Widths of the conv encoder's layers (3x3 conv + ReLU + 2x2 max-pool each; the
+            paper: 8, 16, 32, 64). Images need sides of at least 2^len(image_channels) pixels.
+        image_embed_dim: Size of each image's embedding (a linear layer after the convolutions).
         demo_length: Frames of a demonstration. None: taken from the training dataset (median episode
             length) when training starts.
         online_feedback: The paper's execution loop: every control step, condition on the current sensed SM
@@ -112,6 +118,11 @@ class CNMPConfig(PreTrainedConfig):
     # Task parameters γ.
     use_task_params: bool | None = None
 
+    # Images (paper Sec. IV-B): a conv encoder embeds each image feature; the embedding joins γ.
+    use_images: bool | None = None
+    image_channels: tuple[int, ...] = (8, 16, 32, 64)
+    image_embed_dim: int = 32
+
     # Execution (paper Sec. III: online conditioning, PD tracking, phase stopping).
     demo_length: int | None = None
     online_feedback: bool = True
@@ -147,6 +158,12 @@ class CNMPConfig(PreTrainedConfig):
         super().__post_init__()
         self.encoder_layers = tuple(int(w) for w in self.encoder_layers)
         self.decoder_layers = tuple(int(w) for w in self.decoder_layers)
+        self.image_channels = tuple(int(w) for w in self.image_channels)
+        if not self.image_channels or min(self.image_channels) < 1 or self.image_embed_dim < 1:
+            raise ValueError(
+                f"image_channels must be non-empty positive widths and image_embed_dim >= 1, got "
+                f"{self.image_channels}, {self.image_embed_dim}"
+            )
         if not self.encoder_layers or min(self.encoder_layers) < 1:
             raise ValueError(f"encoder_layers must be non-empty positive widths, got {self.encoder_layers}")
         if min(self.decoder_layers, default=1) < 1:
@@ -245,6 +262,18 @@ class CNMPConfig(PreTrainedConfig):
             )
         if self.feedback_dims is not None and (min(self.feedback_dims) < 0 or max(self.feedback_dims) >= sm):
             raise ValueError(f"feedback_dims {self.feedback_dims} outside the SM dimensions 0..{sm - 1}")
+        if self.use_images and not self.image_features:
+            raise ValueError(
+                f"use_images=True but the dataset/env has no image feature; available inputs: {sorted(self.input_features)}"
+            )
+        for key in self.image_keys:
+            shape = tuple(self.input_features[key].shape)
+            side = 2 ** len(self.image_channels)
+            if len(shape) != 3 or min(shape[1:]) < side:
+                raise ValueError(
+                    f"image feature {key!r} has shape {shape}; the conv encoder needs [channels, height, width] "
+                    f"with sides of at least {side} pixels ({len(self.image_channels)} 2x2 poolings)"
+                )
         if self.use_task_params and TASK_PARAMS not in self.input_features:
             raise ValueError(
                 f"use_task_params=True but the dataset/env has no {TASK_PARAMS!r} feature; "
@@ -262,6 +291,18 @@ class CNMPConfig(PreTrainedConfig):
         if self.use_task_params is False or TASK_PARAMS not in (self.input_features or {}):
             return 0
         return int(self.input_features[TASK_PARAMS].shape[0])
+
+    @property
+    def image_keys(self) -> list[str]:
+        """The image features the CNMP conditions on (sorted)."""
+        if self.use_images is False:
+            return []
+        return sorted(self.image_features)
+
+    @property
+    def episode_dim(self) -> int:
+        """Size of the episode-level input of E and Q: γ plus one embedding per image feature."""
+        return self.task_dim + len(self.image_keys) * self.image_embed_dim
 
     @property
     def max_conditions(self) -> int:

@@ -159,6 +159,24 @@ def run_mlp(layers: nn.Sequential, x: Tensor, start: int = 0) -> Tensor:
     return x
 
 
+class ConvEncoder(nn.Module):
+    """Image -> embedding (paper Sec. IV-B): per width in ``channels`` a 3x3 conv, ReLU and 2x2 max-pool
+    (the paper: 8, 16, 32, 64), then a linear layer to ``embed_dim``."""
+
+    def __init__(self, in_shape: tuple[int, int, int], channels: tuple[int, ...], embed_dim: int):
+        super().__init__()
+        c, h, w = in_shape
+        layers: list[nn.Module] = []
+        for width in channels:
+            layers += [nn.Conv2d(c, width, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)]
+            c, h, w = width, h // 2, w // 2
+        self.conv = nn.Sequential(*layers)
+        self.project = nn.Linear(c * h * w, embed_dim)
+
+    def forward(self, images: Tensor) -> Tensor:
+        return self.project(self.conv(images).flatten(1))
+
+
 class CNMP(nn.Module):
     """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch)."""
 
@@ -352,9 +370,15 @@ class CNMPPolicy(PreTrainedPolicy):
         super().__init__(config)
         config.validate_features()
         self.config = config
+        # One conv encoder per image feature; its embedding joins γ as the episode-level input of E and Q.
+        self.image_encoders = nn.ModuleDict({
+            key.replace(".", "_"): ConvEncoder(tuple(config.input_features[key].shape), config.image_channels,
+                                               config.image_embed_dim)
+            for key in config.image_keys
+        })
         self.model = CNMP(
             sm_dim=config.sm_dim,
-            task_dim=config.task_dim,
+            task_dim=config.episode_dim,
             encoder_layers=config.encoder_layers,
             decoder_layers=config.decoder_layers,
             min_std=config.min_std,
@@ -556,14 +580,26 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
         return (c.pd_kp * c.sigma_ref / std).clamp(c.kp_min, c.kp_max)
 
     def _task_params(self, batch: dict[str, Tensor]) -> Tensor | None:
-        if not self.config.task_dim:
+        """The episode-level input of E and Q: γ (``observation.task_params``) and the embedding of each image
+        feature, [B, episode_dim]; None when there is neither."""
+        parts = []
+        if self.config.task_dim:
+            if TASK_PARAMS not in batch:
+                raise KeyError(f"this CNMP is conditioned on task parameters: the batch needs {TASK_PARAMS!r}")
+            g = batch[TASK_PARAMS]
+            g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]  # a window of γ: all frames are equal
+            check_finite(TASK_PARAMS, g)
+            parts.append(g)
+        for key in self.config.image_keys:
+            if key not in batch:
+                raise KeyError(f"this CNMP is conditioned on the image {key!r}; the batch has {sorted(batch)}")
+            img = batch[key]
+            img = img[:, 0] if img.ndim == 5 else img  # a window of frames: the episode's image is constant
+            check_finite(key, img)
+            parts.append(self.image_encoders[key.replace(".", "_")](img))
+        if not parts:
             return None
-        if TASK_PARAMS not in batch:
-            raise KeyError(f"this CNMP is conditioned on task parameters: the batch needs {TASK_PARAMS!r}")
-        g = batch[TASK_PARAMS]
-        g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]  # a window of γ: all frames are equal
-        check_finite(TASK_PARAMS, g)
-        return g
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
     def execution_context(self, batch: dict[str, Tensor], phase: Tensor) -> Context:
         """Conditions from ``environment_state``, the start state at t = 0 and (with ``online_feedback``) the

@@ -467,3 +467,53 @@ def test_numpy_execution_matches_torch_and_follows_weight_changes(policy_and_dat
             policy.model.decoder[-1].bias.sub_(0.5)
         policy.config.numpy_execution = True
         policy.eval()
+
+
+IMG = "observation.images.top"
+
+
+def image_config(**kw) -> CNMPConfig:
+    cfg = small_config(image_channels=(4, 8), image_embed_dim=6, demo_length=20, **kw)
+    cfg.input_features = {OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+                          IMG: PolicyFeature(type=FeatureType.VISUAL, shape=(1, 16, 16))}
+    cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))}
+    return cfg
+
+
+def test_images_condition_the_cnmp_through_a_conv_encoder():
+    torch.manual_seed(0)
+    policy = CNMPPolicy(image_config())
+    assert policy.config.episode_dim == 6 and policy.model.task_dim == 6
+    b, t = 3, 20
+    batch = {ACTION: torch.randn(b, t, 2), f"{ACTION}_is_pad": torch.zeros(b, t, dtype=torch.bool),
+             "action_phase": torch.linspace(0, 1, t).expand(b, t), IMG: torch.rand(b, 1, 16, 16)}
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    conv = policy.image_encoders[IMG.replace(".", "_")].conv[0].weight
+    assert torch.isfinite(loss) and conv.grad is not None and conv.grad.abs().sum() > 0  # the encoder learns
+    policy.eval()
+    obs = {OBS_STATE: torch.zeros(1, 2), IMG: torch.zeros(1, 1, 16, 16)}
+    policy.reset()
+    a = policy.predict_action_chunk(dict(obs))
+    policy.reset()
+    b_ = policy.predict_action_chunk({**obs, IMG: torch.ones(1, 1, 16, 16)})
+    assert not torch.allclose(a, b_)  # another image, another prediction
+    policy.reset()
+    assert policy.select_action(dict(obs)).shape == (1, 2)
+    with pytest.raises(KeyError, match=IMG):
+        policy.reset()
+        policy.select_action({OBS_STATE: torch.zeros(1, 2)})
+
+
+def test_image_config_errors():
+    cfg = image_config(use_images=True)
+    cfg.input_features[IMG] = PolicyFeature(type=FeatureType.VISUAL, shape=(1, 3, 3))
+    with pytest.raises(ValueError, match="sides of at least 4"):
+        CNMPPolicy(cfg)
+    cfg = small_config(use_images=True)
+    cfg.input_features = {OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(2,))}
+    cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))}
+    with pytest.raises(ValueError, match="no image feature"):
+        CNMPPolicy(cfg)
+    off = image_config(use_images=False)
+    assert off.image_keys == [] and CNMPPolicy(off).model.task_dim == 0
