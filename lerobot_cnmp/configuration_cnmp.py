@@ -72,7 +72,10 @@ class CNMPConfig(PreTrainedConfig):
             (``feedback_dims`` of ``observation.state``) besides the episode's conditions, track the
             prediction with the PD law below, and stop the phase while the tracking error is large.
             False: replay the trajectory generated at t = 0 (the open-loop baseline; the phase always advances).
-        feedback_dims: SM dimensions fed back and used for the tracking error; None: all.
+        feedback_dims: SM dimensions fed back (conditioned on) and, unless ``tracking_dims`` says otherwise,
+            used for the tracking error; None: all.
+        tracking_dims: SM dimensions of the tracking error that stops the phase; None: ``feedback_dims``.
+            E.g. feed force readings back (they carry the information) but stop the phase on position only.
         condition_on_start: Keep the state sensed at the first step after ``reset()`` as a condition at
             t = 0 for the whole episode (the start of the movement, as in the paper's Fig. 2).
         phase_step: Phase advance per control step; None: 1 / (demo_length - 1), the demonstrations' pace.
@@ -127,6 +130,7 @@ class CNMPConfig(PreTrainedConfig):
     demo_length: int | None = None
     online_feedback: bool = True
     feedback_dims: tuple[int, ...] | None = None
+    tracking_dims: tuple[int, ...] | None = None
     condition_on_start: bool = True
     phase_step: float | None = None
     phase_stop_threshold: float | None = 0.15
@@ -197,10 +201,11 @@ class CNMPConfig(PreTrainedConfig):
                 f"need 0 < kp_min <= kp_max and sigma_ref > 0, got kp_min={self.kp_min}, kp_max={self.kp_max}, "
                 f"sigma_ref={self.sigma_ref}"
             )
-        if self.feedback_dims is not None:
-            self.feedback_dims = tuple(int(d) for d in self.feedback_dims)
-            if not self.feedback_dims:
-                raise ValueError("feedback_dims must name at least one SM dimension (or be None for all)")
+        for name in ("feedback_dims", "tracking_dims"):
+            if getattr(self, name) is not None:
+                setattr(self, name, tuple(int(d) for d in getattr(self, name)))
+                if not getattr(self, name):
+                    raise ValueError(f"{name} must name at least one SM dimension (or be None)")
         for kind in ("STATE", "ENV", "ACTION"):
             mode = self.normalization_mapping.get(kind, NormalizationMode.IDENTITY)
             if mode not in (NormalizationMode.MEAN_STD, NormalizationMode.IDENTITY):
@@ -260,8 +265,10 @@ class CNMPConfig(PreTrainedConfig):
                 f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {sm} (the CNMP "
                 "condition layout, see lerobot_cnmp.conditions)"
             )
-        if self.feedback_dims is not None and (min(self.feedback_dims) < 0 or max(self.feedback_dims) >= sm):
-            raise ValueError(f"feedback_dims {self.feedback_dims} outside the SM dimensions 0..{sm - 1}")
+        for name in ("feedback_dims", "tracking_dims"):
+            dims = getattr(self, name)
+            if dims is not None and (not dims or min(dims) < 0 or max(dims) >= sm):
+                raise ValueError(f"{name} {dims} outside the SM dimensions 0..{sm - 1}")
         if self.use_images and not self.image_features:
             raise ValueError(
                 f"use_images=True but the dataset/env has no image feature; available inputs: {sorted(self.input_features)}"

@@ -559,18 +559,25 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
             )
         return 1.0 / (self.config.demo_length - 1)
 
-    def _feedback_mask(self, like: Tensor) -> Tensor:
-        mask = torch.ones_like(like)
-        if self.config.feedback_dims is not None:
-            mask = torch.zeros_like(like)
-            mask[..., list(self.config.feedback_dims)] = 1.0
+    @staticmethod
+    def _dims_mask(like: Tensor, dims) -> Tensor:
+        if dims is None:
+            return torch.ones_like(like)
+        mask = torch.zeros_like(like)
+        mask[..., list(dims)] = 1.0
         return mask
 
+    def _feedback_mask(self, like: Tensor) -> Tensor:
+        return self._dims_mask(like, self.config.feedback_dims)
+
     def tracking_error(self, state: Tensor) -> Tensor:
-        """Per env, max over the fed-back dims of |sensed SM - SM commanded at the previous step|."""
+        """Per env, max over the tracked dims (``tracking_dims``, else the fed-back ones) of
+        |sensed SM - SM commanded at the previous step|."""
         if self._target is None:
             return torch.zeros(state.shape[0], device=state.device, dtype=state.dtype)
-        return ((state - self._target).abs() * self._feedback_mask(state)).amax(dim=-1)
+        c = self.config
+        dims = c.tracking_dims if c.tracking_dims is not None else c.feedback_dims
+        return ((state - self._target).abs() * self._dims_mask(state, dims)).amax(dim=-1)
 
     def pd_gains(self, std: Tensor) -> Tensor:
         """kp per env and SM dim: constant, or scaled by sigma_ref / σ within [kp_min, kp_max]."""

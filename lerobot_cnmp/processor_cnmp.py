@@ -22,7 +22,7 @@ from lerobot_cnmp.configuration_cnmp import CNMPConfig
 
 
 STD_FLOOR = 1e-2
-"""An SM dim's normalization std is at least this fraction of the largest SM dim's std."""
+"""An SM dim's normalization std is at least this fraction of the median SM dim's std."""
 
 
 def _as_np(x) -> np.ndarray:
@@ -34,7 +34,9 @@ def floored_sm_std(std) -> np.ndarray:
     whose std is IK round-off) would otherwise be scaled up to unit variance, and its noise, far below the
     model's σ floor, would dominate the NLL and its gradients."""
     std = _as_np(std).astype(np.float32).reshape(-1)
-    floor = max(STD_FLOOR * float(std.max()) if std.size else 0.0, 1e-6)
+    # The median, not the largest: SM dims may mix units (metres, newtons), and one large-unit dim must not
+    # flatten the small-unit ones.
+    floor = max(STD_FLOOR * float(np.median(std)) if std.size else 0.0, 1e-6)
     return np.maximum(std, floor).astype(np.float32)
 
 

@@ -314,8 +314,13 @@ def test_feedback_dims_limit_the_tracking_error(policy_and_data):
         assert float(policy.tracking_error(off_in_y)[0]) == 0.0
         ctx = policy.execution_context({**obs, OBS_STATE: off_in_y}, policy._phase)
         torch.testing.assert_close(ctx.mask[0, -1], torch.tensor([1.0, 0.0]))  # current state: x only
+        policy.config.feedback_dims, policy.config.tracking_dims = None, (1,)  # feed both back, track y only
+        off_in_x = policy._target + torch.tensor([[5.0, 0.0]])
+        assert float(policy.tracking_error(off_in_x)[0]) == 0.0 and float(policy.tracking_error(off_in_y)[0]) == 5.0
+        ctx = policy.execution_context({**obs, OBS_STATE: off_in_x}, policy._phase)
+        torch.testing.assert_close(ctx.mask[0, -1], torch.tensor([1.0, 1.0]))
     finally:
-        policy.config.feedback_dims = None
+        policy.config.feedback_dims = policy.config.tracking_dims = None
 
 
 def test_open_loop_replays_the_plan(policy_and_data):

@@ -7,8 +7,15 @@ from typing import Any, Callable
 
 import gymnasium as gym
 
-from lerobot_cnmp.envs import pickplace
-from lerobot_cnmp.envs.configs import OBSTACLE2D_GYM_ID, PICKPLACE_GYM_ID, CNMPObstacle2DEnv, CNMPPickPlaceEnv
+from lerobot_cnmp.envs import pickplace, weights
+from lerobot_cnmp.envs.configs import (
+    OBSTACLE2D_GYM_ID,
+    PICKPLACE_GYM_ID,
+    WEIGHTS_GYM_ID,
+    CNMPObstacle2DEnv,
+    CNMPPickPlaceEnv,
+    CNMPWeightsEnv,
+)
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
 
 if OBSTACLE2D_GYM_ID not in gym.registry:
@@ -16,6 +23,12 @@ if OBSTACLE2D_GYM_ID not in gym.registry:
         id=OBSTACLE2D_GYM_ID,
         entry_point="lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv",
         max_episode_steps=DEFAULT_MAX_EPISODE_STEPS,
+    )
+if WEIGHTS_GYM_ID not in gym.registry:
+    gym.register(
+        id=WEIGHTS_GYM_ID,
+        entry_point="lerobot_cnmp.envs.weights:WeightsEnv",
+        max_episode_steps=weights.DEFAULT_MAX_EPISODE_STEPS,
     )
 if PICKPLACE_GYM_ID not in gym.registry:
     gym.register(
@@ -156,7 +169,62 @@ def _pickplace_spec() -> SimSpec:
     )
 
 
-SIMS: dict[str, SimSpec] = {"cnmp_obstacle2d": _obstacle2d_spec(), "cnmp_pickplace": _pickplace_spec()}
+def _weights_demos() -> list[tuple[int, float]]:
+    # the paper's 20 demos: 2 shapes x 2 weight categories x 5 masses
+    return [(shape, m) for shape in range(len(weights.SHAPES)) for cat in weights.WEIGHT_CATEGORIES
+            for m in weights.DEMO_MASSES[cat]]
 
-__all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "SIMS", "SimSpec", "OBSTACLE2D_GYM_ID", "PICKPLACE_GYM_ID",
-           "ENV_STATE_DIM"]
+
+def _weights_reset_options(i: int, conditions: str) -> dict[str, Any]:
+    shape, mass = _weights_demos()[i % len(_weights_demos())]
+    return {"shape": shape, "mass": mass}
+
+
+def _weights_config_kwargs(conditions: str) -> dict[str, Any]:
+    if conditions != "demo_masses":
+        raise ValueError(f"cnmp_weights records its demo masses only (conditions 'demo_masses'), got {conditions!r}")
+    return {}
+
+
+def _weights_spec() -> SimSpec:
+    from lerobot_cnmp.experts.weights import WeightsExpert
+
+    names = list(weights.SM_NAMES)
+    return SimSpec(
+        env_config_cls=CNMPWeightsEnv,
+        expert_cls=WeightsExpert,
+        demo_length=weights.DEMO_LENGTH,
+        default_episodes=len(_weights_demos()),
+        default_conditions="demo_masses",
+        feature_names={"action": names, "agent_pos": names},
+        reset_options=_weights_reset_options,
+        episode_label=lambda env: f"{weights.SHAPES[env.shape][0]}, {env.mass:g} kg",
+        config_kwargs=_weights_config_kwargs,
+        features_note=(
+            "`observation.state` and `action` are the SM in task space: the tool point (x, y, z, m), the two "
+            "finger joint positions (m) and the wrist force/torque reading (N, N·m, zeroed at reset, 20 ms "
+            "low-pass). The env ignores the F/T entries of an action (forces cannot be commanded); the "
+            "expert fills them with the previous reading. The container's class (shape, weight category) "
+            "is in the episode labels above only, never in a feature."
+        ),
+        description=(
+            "The UR10-like arm of cnmp_pickplace with a wrist force/torque sensor picks a container from the "
+            "middle of the table, (0.70, -0.20), and places it on one of four 12 x 12 cm zones chosen by its "
+            "shape (a 4 cm box or a 6 cm cube, which close the fingers to different widths) and its weight "
+            "category (light 0.15-0.35 kg, heavy 0.65-0.95 kg), as in the sensorimotor classification "
+            "experiment of Seker et al. (RSS 2019, Sec. IV-D). The arm is driven in task space: each step the "
+            "tool-point target is converted to joints by IK. A scripted expert, who knows the class, plans "
+            "approach, grasp, lift, carry, place and release with minimum-jerk segments; 5 masses per "
+            "category and shape give the paper's 20 demonstrations."
+        ),
+    )
+
+
+SIMS: dict[str, SimSpec] = {
+    "cnmp_obstacle2d": _obstacle2d_spec(),
+    "cnmp_pickplace": _pickplace_spec(),
+    "cnmp_weights": _weights_spec(),
+}
+
+__all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPWeightsEnv", "SIMS", "SimSpec", "OBSTACLE2D_GYM_ID",
+           "PICKPLACE_GYM_ID", "WEIGHTS_GYM_ID", "ENV_STATE_DIM"]

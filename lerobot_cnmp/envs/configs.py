@@ -21,6 +21,7 @@ from lerobot_cnmp.envs.obstacle2d import (
 
 OBSTACLE2D_GYM_ID = "cnmp/Obstacle2D-v0"
 PICKPLACE_GYM_ID = "cnmp/PickPlace-v0"
+WEIGHTS_GYM_ID = "cnmp/Weights-v0"
 
 
 @dataclass
@@ -176,3 +177,56 @@ class CNMPPickPlaceEnv(CNMPSimConfig):
         """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``."""
         rename = RenameObservationsProcessorStep(rename_map={OBS_ENV_STATE: TASK_PARAMS})
         return PolicyProcessorPipeline(steps=[rename]), PolicyProcessorPipeline(steps=[])
+
+
+@EnvConfig.register_subclass("cnmp_weights")
+@dataclass
+class CNMPWeightsEnv(CNMPSimConfig):
+    """The arm sorting containers by shape and weight, sensed through fingers and a wrist F/T sensor (CNMP
+    paper, Sec. IV-D). The SM is task space: tool point (3), finger positions (2), F/T (6); no observation
+    names the class.
+
+    Fields:
+        task: gymnasium task name (the id is ``cnmp/<task>``).
+        fps: control frequency, Hz.
+        episode_length: steps before truncation (the demonstrated motion takes 200).
+        perturbation: ``none`` or ``weight_switch`` (0.5 kg added once to a held light container during
+            transport, so it becomes heavy; success then means the heavy zone).
+        render_mode: ``rgb_array`` (for eval videos) or ``None``.
+        render_size: side of the rendered square image, pixels.
+        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+    """
+
+    task: str | None = "Weights-v0"
+    fps: int = 50
+    episode_length: int = 260
+    perturbation: str = "none"
+    render_mode: str | None = "rgb_array"
+    render_size: int = 256
+    terminate_on_success: bool = True
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(11,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(11,)),
+        }
+    )
+    features_map: dict[str, str] = field(default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE})
+
+    def __post_init__(self):
+        from lerobot_cnmp.envs.weights import PERTURBATION_CHOICES as WEIGHTS_PERTURBATIONS
+
+        if self.task != "Weights-v0":
+            raise ValueError(f"unknown task {self.task!r} for cnmp_weights; choose 'Weights-v0'")
+        if self.perturbation not in WEIGHTS_PERTURBATIONS:
+            raise ValueError(
+                f"unknown perturbation {self.perturbation!r}; choose one of {list(WEIGHTS_PERTURBATIONS)}"
+            )
+        self._check_common()
+
+    @property
+    def gym_id(self) -> str:
+        return WEIGHTS_GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"perturbation": self.perturbation, **self._common_gym_kwargs()}

@@ -483,6 +483,40 @@ def reference_trajectory(
     return out
 
 
+# --- control and contacts (shared with the other arm sims) ---------------------------------------------
+def servo_control_step(model, data, prev_command, joint_command, on_substep=None) -> np.ndarray:
+    """One 50 Hz control step of the arm's joint servos; returns the joint target reached (the new command).
+
+    First-order hold: the joint targets ramp from ``prev_command`` to ``joint_command`` over the control
+    step, with the ramp's velocity fed forward (like a robot controller interpolating servo targets). The
+    controller limits the joint speed to the UR10's. The finger ``ctrl`` entries are left as they are.
+    ``on_substep()`` is called after each of the ``N_SUBSTEPS`` physics steps.
+    """
+    d = data
+    prev = np.asarray(prev_command, dtype=np.float64)
+    max_delta = JOINT_SPEED_LIMITS * (N_SUBSTEPS * model.opt.timestep)
+    target = prev + np.clip(np.asarray(joint_command, dtype=np.float64) - prev, -max_delta, max_delta)
+    d.ctrl[ARM_VEL_CTRL] = (target - prev) / (N_SUBSTEPS * model.opt.timestep)
+    for i in range(N_SUBSTEPS):
+        # semi-implicit Euler moves the joint with the updated velocity, so substep i servos to the
+        # ramp at its start; the joints reach ``target`` at the end of the control step
+        d.ctrl[ARM_POS_CTRL] = prev + (target - prev) * (i / N_SUBSTEPS)
+        mujoco.mj_step(model, d)
+        if on_substep is not None:
+            on_substep()
+    d.ctrl[ARM_POS_CTRL] = target
+    return target
+
+
+def contacts_with(data, gid: int) -> np.ndarray:
+    """Geom ids in contact with geom ``gid`` now."""
+    if data.ncon == 0:
+        return np.zeros(0, dtype=int)
+    pairs = data.contact.geom[: data.ncon]
+    other = np.where(pairs[:, 0] == gid, pairs[:, 1], np.where(pairs[:, 1] == gid, pairs[:, 0], -1))
+    return other[other >= 0]
+
+
 # --- the env --------------------------------------------------------------------------------------------
 class PickPlaceEnv(MujocoSimEnv):
     """UR10-like arm picking a box and placing it beyond a wall; see the module docstring.
@@ -627,23 +661,10 @@ class PickPlaceEnv(MujocoSimEnv):
             raise RuntimeError("call reset() before step()")
         action = np.asarray(action, dtype=np.float64).reshape(7)
         action = np.clip(action, self.action_space.low, self.action_space.high)
-        d = self.data
-        # First-order hold: the joint targets ramp from the previous command to this one over the control
-        # step, with the ramp's velocity fed forward (like a robot controller interpolating servo targets).
-        # The controller limits the joint speed to the UR10's (the expert stays below it).
-        prev = self._last_command
-        max_delta = JOINT_SPEED_LIMITS * (N_SUBSTEPS * self.model.opt.timestep)
-        target = prev + np.clip(action[:6] - prev, -max_delta, max_delta)
-        d.ctrl[ARM_VEL_CTRL] = (target - prev) / (N_SUBSTEPS * self.model.opt.timestep)
-        d.ctrl[FINGER_CTRL] = FINGER_OPEN + action[6] * (FINGER_CLOSED - FINGER_OPEN)
-        for i in range(N_SUBSTEPS):
-            # semi-implicit Euler moves the joint with the updated velocity, so substep i servos to the
-            # ramp at its start; the joints reach ``target`` at the end of the control step
-            d.ctrl[ARM_POS_CTRL] = prev + (target - prev) * (i / N_SUBSTEPS)
-            mujoco.mj_step(self.model, d)
-            self._update_progress()
-        d.ctrl[ARM_POS_CTRL] = target
-        self._last_command = target
+        self.data.ctrl[FINGER_CTRL] = FINGER_OPEN + action[6] * (FINGER_CLOSED - FINGER_OPEN)
+        self._last_command = servo_control_step(
+            self.model, self.data, self._last_command, action[:6], self._update_progress
+        )
         self._step += 1
         return self._step_result()
 
@@ -668,12 +689,7 @@ class PickPlaceEnv(MujocoSimEnv):
 
     def _contacts_with(self, gid: int) -> np.ndarray:
         """Geom ids in contact with geom ``gid`` now."""
-        d = self.data
-        if d.ncon == 0:
-            return np.zeros(0, dtype=int)
-        pairs = d.contact.geom[: d.ncon]
-        other = np.where(pairs[:, 0] == gid, pairs[:, 1], np.where(pairs[:, 1] == gid, pairs[:, 0], -1))
-        return other[other >= 0]
+        return contacts_with(self.data, gid)
 
     def _object_bottom(self) -> float:
         return float(self.data.qpos[self._object_qadr + 2]) - self.object_height / 2 - TABLE_TOP
