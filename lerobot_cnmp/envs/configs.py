@@ -28,6 +28,11 @@ WEIGHTS_GYM_ID = "cnmp/Weights-v0"
 class CNMPSimConfig(EnvConfig):
     """What the CNMP sims' configs share (not an env type itself): rendering and episode options."""
 
+    def _check_choice(self, name: str, choices) -> None:
+        value = getattr(self, name)
+        if value not in choices:
+            raise ValueError(f"unknown {name} {value!r} for {self.type}; choose one of {list(choices)}")
+
     def _check_common(self) -> None:
         if self.render_mode not in (None, "rgb_array"):
             raise ValueError(f"unknown render_mode {self.render_mode!r}; choose 'rgb_array' or None")
@@ -94,14 +99,8 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
     def __post_init__(self):
         if self.task != "Obstacle2D-v0":
             raise ValueError(f"unknown task {self.task!r} for cnmp_obstacle2d; choose 'Obstacle2D-v0'")
-        if self.conditions not in CONDITION_CHOICES:
-            raise ValueError(
-                f"unknown conditions {self.conditions!r}; choose one of {list(CONDITION_CHOICES)}"
-            )
-        if self.perturbation not in PERTURBATION_CHOICES:
-            raise ValueError(
-                f"unknown perturbation {self.perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
-            )
+        self._check_choice("conditions", CONDITION_CHOICES)
+        self._check_choice("perturbation", PERTURBATION_CHOICES)
         self._check_common()
 
     @property
@@ -217,10 +216,7 @@ class CNMPWeightsEnv(CNMPSimConfig):
 
         if self.task != "Weights-v0":
             raise ValueError(f"unknown task {self.task!r} for cnmp_weights; choose 'Weights-v0'")
-        if self.perturbation not in WEIGHTS_PERTURBATIONS:
-            raise ValueError(
-                f"unknown perturbation {self.perturbation!r}; choose one of {list(WEIGHTS_PERTURBATIONS)}"
-            )
+        self._check_choice("perturbation", WEIGHTS_PERTURBATIONS)
         self._check_common()
 
     @property
