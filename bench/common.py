@@ -16,6 +16,15 @@ API_FIELDS = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_target
 """The config's policy fields that the in-memory API takes over (model, sampling, optimizer)."""
 
 
+def make_sim(env_cfg, policy, n_envs: int):
+    """(vector env, env preprocessor, env postprocessor) of a sim's ``EnvConfig``, built as ``lerobot-eval``
+    builds them, for LeRobot's ``rollout``."""
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+
+    env = next(iter(make_env(env_cfg, n_envs=n_envs)[env_cfg.type].values()))
+    return (env, *make_env_pre_post_processors(env_cfg, policy.config))
+
+
 def config(path: Path = CONFIG) -> dict:
     return json.loads(Path(path).read_text())
 

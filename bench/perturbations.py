@@ -14,23 +14,21 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import CHECKPOINT, REPO, make_sim  # noqa: E402
 
 
-def make_sim(policy, perturbation: str, n_envs: int, **env_kwargs):
+def obstacle_sim(policy, perturbation: str, n_envs: int, **env_kwargs):
     """A vector env of the obstacle sim with its LeRobot env processors."""
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
-
     from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
 
-    cfg = CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, **env_kwargs)
-    env = next(iter(make_env(cfg, n_envs=n_envs)[cfg.type].values()))
-    return (env, *make_env_pre_post_processors(cfg, policy.config))
+    return make_sim(CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, **env_kwargs), policy, n_envs)
 
 
 def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, batch: int, seed: int, record=None):
@@ -38,7 +36,7 @@ def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, bat
     from lerobot.utils.constants import OBS_STATE
 
     # Episodes run to their end (300 steps) so the final goal error means something; success is any step's.
-    env, env_pre, env_post = make_sim(policy, perturbation, batch, terminate_on_success=False)
+    env, env_pre, env_post = obstacle_sim(policy, perturbation, batch, terminate_on_success=False)
     policy.config.online_feedback = feedback
     successes, goal_errors = [], []
     for start in range(0, episodes, batch):
@@ -71,7 +69,7 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
     from lerobot.scripts.lerobot_eval import rollout
     from lerobot.utils.constants import OBS_STATE
 
-    env, env_pre, env_post = make_sim(policy, "hold", 1)
+    env, env_pre, env_post = obstacle_sim(policy, "hold", 1)
     policy.config.online_feedback = True
     data = rollout(env, policy, env_pre, env_post, pre, post, seeds=[seed], return_observations=True,
                    predicted_latents_callback=record)
@@ -103,7 +101,7 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(REPO / "outputs/main/train/checkpoints/last/pretrained_model"))
+    p.add_argument("--checkpoint", default=str(CHECKPOINT))
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--batch", type=int, default=10)
     p.add_argument("--seed", type=int, default=200000)

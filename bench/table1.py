@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, checkpoint_or_train  # noqa: E402
+from common import REPO, checkpoint_or_train, make_sim  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_pickplace.json"
 CHECKPOINT = REPO / "outputs" / "pickplace" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -40,7 +40,6 @@ def key(gamma) -> str:
 
 def execute(policy, pre, post, gammas: list | None, episodes: int, seed: int) -> list[bool]:
     """Success per episode: one per γ of ``gammas``, or ``episodes`` with γ drawn by the env."""
-    from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_cnmp.envs.configs import CNMPPickPlaceEnv
@@ -48,10 +47,8 @@ def execute(policy, pre, post, gammas: list | None, episodes: int, seed: int) ->
     runs = [(g, 1) for g in gammas] if gammas else [(None, episodes)]
     out = []
     for gamma, n in runs:
-        cfg = CNMPPickPlaceEnv(task_params=gamma, render_mode=None)
         batch = min(n, 10)
-        env = next(iter(make_env(cfg, n_envs=batch)[cfg.type].values()))
-        env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+        env, env_pre, env_post = make_sim(CNMPPickPlaceEnv(task_params=gamma, render_mode=None), policy, batch)
         for start in range(0, n, batch):
             data = rollout(env, policy, env_pre, env_post, pre, post, seeds=list(range(seed + start, seed + start + batch)))
             out += [bool(s.any()) for s in data["success"]][: n - start]

@@ -129,10 +129,16 @@ def _pickplace_reset_options(i: int, conditions: str) -> dict[str, Any]:
     return {"task_params": grid[i % len(grid)]}
 
 
-def _pickplace_config_kwargs(conditions: str) -> dict[str, Any]:
-    if conditions != "grid":
-        raise ValueError(f"cnmp_pickplace records the paper's gamma grid only (conditions 'grid'), got {conditions!r}")
-    return {}
+def _records_only(sim: str, conditions_name: str, what: str) -> Callable[[str], dict[str, Any]]:
+    """``config_kwargs`` of a sim that records one fixed set of episodes (its ``reset_options``): the only
+    valid ``conditions`` is that set's name, and the env config takes no conditions option."""
+
+    def config_kwargs(conditions: str) -> dict[str, Any]:
+        if conditions != conditions_name:
+            raise ValueError(f"{sim} records {what} only (conditions {conditions_name!r}), got {conditions!r}")
+        return {}
+
+    return config_kwargs
 
 
 def _pickplace_spec() -> SimSpec:
@@ -153,7 +159,7 @@ def _pickplace_spec() -> SimSpec:
             "an episode; `observation.state` the measured joint angles (rad) and gripper closure in [0, 1]; "
             "`action` the commanded joint angles and gripper command."
         ),
-        config_kwargs=_pickplace_config_kwargs,
+        config_kwargs=_records_only("cnmp_pickplace", "grid", "the paper's gamma grid"),
         description=(
             "A MuJoCo arm with the UR10's published DH kinematics (6 position-servoed joints, gravity "
             "compensated, 50 Hz control) and a parallel two-finger gripper picks a 4 x 4 cm box of height "
@@ -180,12 +186,6 @@ def _weights_reset_options(i: int, conditions: str) -> dict[str, Any]:
     return {"shape": shape, "mass": mass}
 
 
-def _weights_config_kwargs(conditions: str) -> dict[str, Any]:
-    if conditions != "demo_masses":
-        raise ValueError(f"cnmp_weights records its demo masses only (conditions 'demo_masses'), got {conditions!r}")
-    return {}
-
-
 def _weights_spec() -> SimSpec:
     from lerobot_cnmp.experts.weights import WeightsExpert
 
@@ -199,7 +199,7 @@ def _weights_spec() -> SimSpec:
         feature_names={"action": names, "agent_pos": names},
         reset_options=_weights_reset_options,
         episode_label=lambda env: f"{weights.SHAPES[env.shape][0]}, {env.mass:g} kg",
-        config_kwargs=_weights_config_kwargs,
+        config_kwargs=_records_only("cnmp_weights", "demo_masses", "its demo masses"),
         features_note=(
             "`observation.state` and `action` are the SM in task space: the tool point (x, y, z, m), the two "
             "finger joint positions (m) and the wrist force/torque reading (N, N·m, zeroed at reset, 20 ms "

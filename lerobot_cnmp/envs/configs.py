@@ -97,8 +97,7 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
     )
 
     def __post_init__(self):
-        if self.task != "Obstacle2D-v0":
-            raise ValueError(f"unknown task {self.task!r} for cnmp_obstacle2d; choose 'Obstacle2D-v0'")
+        self._check_choice("task", ("Obstacle2D-v0",))
         self._check_choice("conditions", CONDITION_CHOICES)
         self._check_choice("perturbation", PERTURBATION_CHOICES)
         self._check_common()
@@ -155,8 +154,7 @@ class CNMPPickPlaceEnv(CNMPSimConfig):
     )
 
     def __post_init__(self):
-        if self.task != "PickPlace-v0":
-            raise ValueError(f"unknown task {self.task!r} for cnmp_pickplace; choose 'PickPlace-v0'")
+        self._check_choice("task", ("PickPlace-v0",))
         if self.task_params is not None and len(self.task_params) != 2:
             raise ValueError(f"task_params must be (object_cm, obstacle_cm), got {self.task_params}")
         self._check_common()
@@ -214,8 +212,7 @@ class CNMPWeightsEnv(CNMPSimConfig):
     def __post_init__(self):
         from lerobot_cnmp.envs.weights import PERTURBATION_CHOICES as WEIGHTS_PERTURBATIONS
 
-        if self.task != "Weights-v0":
-            raise ValueError(f"unknown task {self.task!r} for cnmp_weights; choose 'Weights-v0'")
+        self._check_choice("task", ("Weights-v0",))
         self._check_choice("perturbation", WEIGHTS_PERTURBATIONS)
         self._check_common()
 
