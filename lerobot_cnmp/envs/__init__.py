@@ -18,24 +18,13 @@ from lerobot_cnmp.envs.configs import (
 )
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
 
-if OBSTACLE2D_GYM_ID not in gym.registry:
-    gym.register(
-        id=OBSTACLE2D_GYM_ID,
-        entry_point="lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv",
-        max_episode_steps=DEFAULT_MAX_EPISODE_STEPS,
-    )
-if WEIGHTS_GYM_ID not in gym.registry:
-    gym.register(
-        id=WEIGHTS_GYM_ID,
-        entry_point="lerobot_cnmp.envs.weights:WeightsEnv",
-        max_episode_steps=weights.DEFAULT_MAX_EPISODE_STEPS,
-    )
-if PICKPLACE_GYM_ID not in gym.registry:
-    gym.register(
-        id=PICKPLACE_GYM_ID,
-        entry_point="lerobot_cnmp.envs.pickplace:PickPlaceEnv",
-        max_episode_steps=pickplace.DEFAULT_MAX_EPISODE_STEPS,
-    )
+for _gym_id, _entry_point, _max_steps in (
+    (OBSTACLE2D_GYM_ID, "lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv", DEFAULT_MAX_EPISODE_STEPS),
+    (PICKPLACE_GYM_ID, "lerobot_cnmp.envs.pickplace:PickPlaceEnv", pickplace.DEFAULT_MAX_EPISODE_STEPS),
+    (WEIGHTS_GYM_ID, "lerobot_cnmp.envs.weights:WeightsEnv", weights.DEFAULT_MAX_EPISODE_STEPS),
+):
+    if _gym_id not in gym.registry:
+        gym.register(id=_gym_id, entry_point=_entry_point, max_episode_steps=_max_steps)
 
 
 def _condition_names(max_conditions: int, sm_names: list[str]) -> list[str]:

@@ -26,7 +26,22 @@ WEIGHTS_GYM_ID = "cnmp/Weights-v0"
 
 @dataclass
 class CNMPSimConfig(EnvConfig):
-    """What the CNMP sims' configs share (not an env type itself): rendering and episode options."""
+    """What the CNMP sims' configs share (not an env type itself): rendering and episode options.
+
+    Fields:
+        render_mode: ``rgb_array`` (for eval videos) or ``None``.
+        render_size: side of the rendered square image, pixels.
+        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+    The gym id is ``cnmp/<task>``.
+    """
+
+    render_mode: str | None = "rgb_array"
+    render_size: int = 256
+    terminate_on_success: bool = True
+
+    @property
+    def gym_id(self) -> str:
+        return f"cnmp/{self.task}"
 
     def _check_choice(self, name: str, choices) -> None:
         value = getattr(self, name)
@@ -68,9 +83,7 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
             ``random`` (random family member and condition set).
         perturbation: ``none``, ``push`` (0.12 displacement away from the obstacle at a random step in
             [50, 120]) or ``hold`` (held still for 30 steps from a random step in [50, 120]).
-        render_mode: ``rgb_array`` (for eval videos) or ``None``.
-        render_size: side of the rendered square image, pixels.
-        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
     task: str | None = "Obstacle2D-v0"
@@ -78,9 +91,6 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
     episode_length: int = DEFAULT_MAX_EPISODE_STEPS
     conditions: str = "mixed"
     perturbation: str = "none"
-    render_mode: str | None = "rgb_array"
-    render_size: int = 256
-    terminate_on_success: bool = True
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
@@ -101,10 +111,6 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
         self._check_choice("conditions", CONDITION_CHOICES)
         self._check_choice("perturbation", PERTURBATION_CHOICES)
         self._check_common()
-
-    @property
-    def gym_id(self) -> str:
-        return OBSTACLE2D_GYM_ID
 
     @property
     def gym_kwargs(self) -> dict:
@@ -130,18 +136,13 @@ class CNMPPickPlaceEnv(CNMPSimConfig):
         episode_length: steps before truncation (the demonstrated motion takes 200).
         task_params: a fixed γ (object_cm, obstacle_cm) for every episode; None (default) draws γ uniformly
             from the training range, object in [2, 6] cm and obstacle in [2, 8] cm.
-        render_mode: ``rgb_array`` (for eval videos) or ``None``.
-        render_size: side of the rendered square image, pixels.
-        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
     task: str | None = "PickPlace-v0"
     fps: int = 50
     episode_length: int = 250
     task_params: tuple[float, float] | None = None
-    render_mode: str | None = "rgb_array"
-    render_size: int = 256
-    terminate_on_success: bool = True
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,)),
@@ -158,10 +159,6 @@ class CNMPPickPlaceEnv(CNMPSimConfig):
         if self.task_params is not None and len(self.task_params) != 2:
             raise ValueError(f"task_params must be (object_cm, obstacle_cm), got {self.task_params}")
         self._check_common()
-
-    @property
-    def gym_id(self) -> str:
-        return PICKPLACE_GYM_ID
 
     @property
     def gym_kwargs(self) -> dict:
@@ -189,18 +186,13 @@ class CNMPWeightsEnv(CNMPSimConfig):
         episode_length: steps before truncation (the demonstrated motion takes 200).
         perturbation: ``none`` or ``weight_switch`` (0.5 kg added once to a held light container during
             transport, so it becomes heavy; success then means the heavy zone).
-        render_mode: ``rgb_array`` (for eval videos) or ``None``.
-        render_size: side of the rendered square image, pixels.
-        terminate_on_success: end the episode as soon as it succeeds (recording demos sets False).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
     task: str | None = "Weights-v0"
     fps: int = 50
     episode_length: int = 260
     perturbation: str = "none"
-    render_mode: str | None = "rgb_array"
-    render_size: int = 256
-    terminate_on_success: bool = True
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(11,)),
@@ -215,10 +207,6 @@ class CNMPWeightsEnv(CNMPSimConfig):
         self._check_choice("task", ("Weights-v0",))
         self._check_choice("perturbation", WEIGHTS_PERTURBATIONS)
         self._check_common()
-
-    @property
-    def gym_id(self) -> str:
-        return WEIGHTS_GYM_ID
 
     @property
     def gym_kwargs(self) -> dict:
