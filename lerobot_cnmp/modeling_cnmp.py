@@ -392,6 +392,8 @@ class CNMPPolicy(PreTrainedPolicy):
         self.register_buffer("episode_length", torch.zeros(0, dtype=torch.long), persistent=False)
         if dataset_meta is not None:
             self.set_episode_table(dataset_meta)
+        self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see executor()
+        self._numpy_key: tuple | None = None
         self.reset()
 
     @classmethod
@@ -524,7 +526,7 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
             phase = frames.to(values.dtype) / (length[:, None] - 1).to(values.dtype)
         valid = valid & (phase >= 0) & (phase <= 1)
         check_finite(ACTION, torch.where(valid[..., None], values, torch.zeros_like(values)))
-        return Episodes(values, phase.clamp(0, 1), valid, self._task_params(batch))
+        return Episodes(values, phase.clamp(0, 1), valid, self._episode_inputs(batch))
 
     def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         c = self.config
@@ -586,7 +588,7 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
             return torch.full_like(std, c.pd_kp)
         return (c.pd_kp * c.sigma_ref / std).clamp(c.kp_min, c.kp_max)
 
-    def _task_params(self, batch: dict[str, Tensor]) -> Tensor | None:
+    def _episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
         """The episode-level input of E and Q: γ (``observation.task_params``) and the embedding of each image
         feature, [B, episode_dim]; None when there is neither."""
         parts = []
@@ -651,7 +653,7 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
         valid = torch.cat(valids, dim=1)
         if not bool(valid.any(dim=1).all()):
             raise ValueError("an env in the batch has no condition to condition on (empty context)")
-        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._task_params(batch))
+        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._episode_inputs(batch))
 
     def _ensure_state(self, batch: dict[str, Tensor]) -> Tensor:
         ref = batch[OBS_STATE] if OBS_STATE in batch else batch[OBS_ENV_STATE]
@@ -666,7 +668,7 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
         if not self.config.numpy_execution or self.training or self.model.frequencies.device.type != "cpu":
             return self.model
         key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
-        if getattr(self, "_numpy_key", None) != key:
+        if self._numpy_key != key:
             self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
         return self._numpy_model
 
