@@ -83,7 +83,12 @@ class CNMPConfig(PreTrainedConfig):
             dims of |sensed SM - SM commanded at the previous step|, in action standard deviations) is above
             this. None: never stop.
         pd_kp, pd_kd: PD law on the position target: action = s + kp·e + kd·(e - e_prev), e = SM(τ) - s.
+            kp < 1 approaches the prediction gradually (a first-order lag), which keeps the accelerations,
+            and the inertial loads a wrist F/T sensor reads, close to the demonstrations' when the prediction
+            jumps after re-conditioning.
             kp = 1, kd = 0 commands the predicted SM itself.
+        pd_dims: SM dimensions the PD law applies to; the others are commanded the prediction SM(τ) itself
+            (e.g. a gripper, whose command is a set point, not a position to approach). None: all.
         sigma_scaled_gains: Scale kp per dim by sigma_ref / σ (the predicted σ, normalized units): softer
             where the demonstrations vary more (the paper's compliance proposal), clipped to [kp_min, kp_max].
         numpy_execution: On CPU, execute (``select_action``, ``predict_action_chunk``) with a numpy copy of
@@ -131,6 +136,7 @@ class CNMPConfig(PreTrainedConfig):
     online_feedback: bool = True
     feedback_dims: tuple[int, ...] | None = None
     tracking_dims: tuple[int, ...] | None = None
+    pd_dims: tuple[int, ...] | None = None
     condition_on_start: bool = True
     phase_step: float | None = None
     phase_stop_threshold: float | None = 0.15
@@ -201,7 +207,7 @@ class CNMPConfig(PreTrainedConfig):
                 f"need 0 < kp_min <= kp_max and sigma_ref > 0, got kp_min={self.kp_min}, kp_max={self.kp_max}, "
                 f"sigma_ref={self.sigma_ref}"
             )
-        for name in ("feedback_dims", "tracking_dims"):
+        for name in ("feedback_dims", "tracking_dims", "pd_dims"):
             if getattr(self, name) is not None:
                 setattr(self, name, tuple(int(d) for d in getattr(self, name)))
                 if not getattr(self, name):
@@ -265,7 +271,7 @@ class CNMPConfig(PreTrainedConfig):
                 f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {sm} (the CNMP "
                 "condition layout, see lerobot_cnmp.conditions)"
             )
-        for name in ("feedback_dims", "tracking_dims"):
+        for name in ("feedback_dims", "tracking_dims", "pd_dims"):
             dims = getattr(self, name)
             if dims is not None and (not dims or min(dims) < 0 or max(dims) >= sm):
                 raise ValueError(f"{name} {dims} outside the SM dimensions 0..{sm - 1}")

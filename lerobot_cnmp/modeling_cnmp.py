@@ -581,12 +581,17 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
         dims = c.tracking_dims if c.tracking_dims is not None else c.feedback_dims
         return ((state - self._target).abs() * self._dims_mask(state, dims)).amax(dim=-1)
 
-    def pd_gains(self, std: Tensor) -> Tensor:
-        """kp per env and SM dim: constant, or scaled by sigma_ref / σ within [kp_min, kp_max]."""
+    def pd_gains(self, std: Tensor) -> tuple[Tensor, Tensor]:
+        """(kp, kd) per env and SM dim: kp constant or scaled by sigma_ref / σ within [kp_min, kp_max]; outside
+        ``pd_dims`` kp = 1 and kd = 0 (the prediction itself is commanded)."""
         c = self.config
-        if not c.sigma_scaled_gains:
-            return torch.full_like(std, c.pd_kp)
-        return (c.pd_kp * c.sigma_ref / std).clamp(c.kp_min, c.kp_max)
+        kp = torch.full_like(std, c.pd_kp) if not c.sigma_scaled_gains else (c.pd_kp * c.sigma_ref / std).clamp(
+            c.kp_min, c.kp_max)
+        kd = torch.full_like(std, c.pd_kd)
+        if c.pd_dims is not None:
+            on = self._dims_mask(std, c.pd_dims)
+            kp, kd = on * kp + (1 - on), on * kd
+        return kp, kd
 
     def _episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
         """The episode-level input of E and Q: γ (``observation.task_params``) and the embedding of each image
@@ -699,7 +704,8 @@ model = CNMPModel.load("{repo_id}")                                   # or the i
         if c.online_feedback and state is not None:
             error = target - state
             previous = self._error if self._error is not None else error
-            action = state + self.pd_gains(std) * error + c.pd_kd * (error - previous)
+            kp, kd = self.pd_gains(std)
+            action = state + kp * error + kd * (error - previous)
             self._error = error
         self._target = target
         return action

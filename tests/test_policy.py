@@ -350,14 +350,33 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
     policy, _ = policy_and_data
     cfg = policy.config
     std = torch.tensor([[1e-4, 0.01], [0.05, 10.0]])
-    torch.testing.assert_close(policy.pd_gains(std), torch.full_like(std, cfg.pd_kp))
+    kp, kd = policy.pd_gains(std)
+    torch.testing.assert_close(kp, torch.full_like(std, cfg.pd_kp))
+    torch.testing.assert_close(kd, torch.full_like(std, cfg.pd_kd))
     cfg.sigma_scaled_gains = True
     try:
-        k = policy.pd_gains(std)
+        k, _ = policy.pd_gains(std)
         assert bool(((k >= cfg.kp_min) & (k <= cfg.kp_max)).all())
         assert float(k[0, 0]) == pytest.approx(cfg.kp_max) and float(k[1, 1]) == pytest.approx(cfg.kp_min)  # low σ stiff
     finally:
         cfg.sigma_scaled_gains = False
+    # pd_dims: the PD law on x only; y is commanded the prediction itself (kp = 1, kd = 0).
+    cfg.pd_kp, cfg.pd_kd, cfg.pd_dims = 0.5, 0.2, (0,)
+    try:
+        kp, kd = policy.pd_gains(std)
+        torch.testing.assert_close(kp, torch.tensor([[0.5, 1.0], [0.5, 1.0]]))
+        torch.testing.assert_close(kd, torch.tensor([[0.2, 0.0], [0.2, 0.0]]))
+        cfg.pd_kd = 0.0
+        policy.reset()
+        obs = _obs(1, seed=4)
+        policy.select_action(obs)  # first step: e_prev = e
+        state = obs[OBS_STATE]
+        action = policy.select_action(obs)
+        e = policy._target - state
+        torch.testing.assert_close(action[:, 0], state[:, 0] + 0.5 * e[:, 0])
+        torch.testing.assert_close(action[:, 1], policy._target[:, 1])
+    finally:
+        cfg.pd_kp, cfg.pd_kd, cfg.pd_dims = 1.0, 0.0, None
     # kp = 1, kd = 0: the command is the predicted SM itself.
     policy.reset()
     obs = _obs(1, seed=4)
@@ -375,6 +394,7 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
         ("kp_min", 2.0, "kp_min"),
         ("phase_step", 1.5, "phase_step"),
         ("feedback_dims", (), "feedback_dims"),
+        ("pd_dims", (), "pd_dims"),
     ],
 )
 def test_bad_execution_config_is_rejected(field, value, match):
