@@ -26,15 +26,16 @@ SM layout (:data:`SM_NAMES`, 11 floats), used both for the action and for ``agen
   pointing down (``TOOL_ROT``), warm-started from the measured joints, and servos the joints there
   (pickplace's rate-limited servo step). Targets are clipped to the workspace box :data:`WORKSPACE`.
 * ``finger_left, finger_right``: finger joint positions, metres from the tool axis to each pad's face
-  (0.045 open). Action: the opening to go to. The gripper controller adds a squeeze like an adaptive
-  gripper: for commands below ``SQUEEZE_FULL_BELOW`` (0.035 m) each finger servo's target lies
-  ``GRIP_SQUEEZE`` (1.2 cm) inside the command (blended smoothly to 0 at the open command), so commanding
-  the opening at which the pads touch the container (what the fingers then read) holds it with ~18 N per
-  pad, and commanding the open position opens fully.
+  (0.045 open). The fingers are coupled (a joint equality, as in a parallel gripper), so they move
+  together and centre the container between the pads. Action: the opening to go to. The gripper closes
+  until contact, like an adaptive gripper: for commands below ``SQUEEZE_FULL_BELOW`` (0.035 m) the finger
+  servos' target is the fully closed position (blended smoothly to the command itself at the open
+  command), so any closing command holds the container with the servos' force limit (25 N per pad)
+  whatever its width, and the fingers then read that width, and commanding the open position opens fully.
 * ``fx, fy, fz, tx, ty, tz``: the wrist F/T sensor (MuJoCo ``force`` / ``torque`` sensors on the site
   ``ft`` at the flange, i.e. the load the gripper puts on wrist3), in N and N m, in the sensor frame (z
   along the tool axis: pointing down while working), tared at reset (the gripper's own weight at the home
-  pose is removed) and low-pass filtered (first order, time constant :data:`FT_TAU` = 20 ms, updated at
+  pose is removed) and low-pass filtered (first order, time constant :data:`FT_TAU` = 100 ms, updated at
   every 2 ms physics step). A held container of mass m reads ``fz ~ -m g`` once the lift's acceleration
   has died out. **These entries cannot be commanded: the env ignores them in the action.** They are in
   the action so that the action is the full SM (what a CNMP predicts); the expert fills them with the
@@ -107,12 +108,11 @@ CAMERA_TARGET = (0.55, 0.05, 0.22)
 WORKSPACE = np.array([[0.25, 1.05], [-0.60, 0.70], [0.01, 0.60]])  # tool-point target box (x, y, z)
 
 # Gripper controller (see the module docstring).
-GRIP_SQUEEZE = 0.012  # m inside the command -> 1500 N/m * 0.012 = 18 N per pad
-SQUEEZE_FULL_BELOW = 0.035
+SQUEEZE_FULL_BELOW = 0.035  # m: commands below it close fully (until contact)
 FINGER_CMD_RANGE = (0.004, pp.FINGER_OPEN + 0.005)
 
 # Wrist F/T sensor.
-FT_TAU = 0.02  # s, first-order low-pass
+FT_TAU = 0.1  # s, first-order low-pass: the static load (the weight) over the arm's inertial transients
 FT_BOUND = 1.0e3  # the action space's bound for the (ignored) F/T entries
 
 # Weight switch.
@@ -125,7 +125,7 @@ SWITCH_MIN_HEIGHT = 0.08  # m: the container's bottom above the table when the m
 GRASP_Z = 0.03
 APPROACH_HEIGHT = 0.10  # pre-grasp: this far above the grasp point
 LIFT_HEIGHT = 0.10  # carry with the tool point this far above the grasp height
-PLACE_DROP = 0.003  # release with the container's bottom this high above the table
+PLACE_DROP = 0.01  # release with the container's bottom this high above the table (slip and tracking margin)
 RETREAT = 0.10
 # Phase knots, in control steps of a 200-step demonstration (scaled for other lengths).
 PHASE_STEPS = {
@@ -168,10 +168,12 @@ def finger_contact_opening(shape: int) -> float:
 
 
 def finger_servo_target(command):
-    """The finger servos' target for a finger opening command (m): the command with the grasp squeeze."""
+    """The finger servos' target for a finger opening command (m): fully closed (the joint's lower limit, so
+    the pads stop on the container and squeeze it with the force limit) below ``SQUEEZE_FULL_BELOW``, the
+    command itself at the open position, blended smoothly in between."""
     c = np.asarray(command, dtype=np.float64)
     w = 1.0 - pp._min_jerk((c - SQUEEZE_FULL_BELOW) / (pp.FINGER_OPEN - SQUEEZE_FULL_BELOW))
-    return c - GRIP_SQUEEZE * w
+    return c - w * (c - FINGER_CMD_RANGE[0])
 
 
 # --- the expert's plan ----------------------------------------------------------------------------------
@@ -234,7 +236,8 @@ def check_mass(mass) -> float:
 
 # --- the model ------------------------------------------------------------------------------------------
 def build_model() -> mujoco.MjModel:
-    """The pickplace scene without its wall and target, with the F/T site and sensors and the four zones."""
+    """The pickplace scene without its wall and target, with the F/T site and sensors, coupled fingers and the
+    four zones."""
     spec = mujoco.MjSpec.from_string(pp.MJCF)
     spec.modelname = "cnmp_weights_ur10"
     spec.delete(spec.geom("wall"))
@@ -243,6 +246,9 @@ def build_model() -> mujoco.MjModel:
     spec.body("gripper").add_site(name="ft", pos=[0.0, 0.0, 0.0], size=[0.008, 0.0, 0.0], rgba=[0.9, 0.1, 0.1, 0.6])
     for name, kind in (("ft_force", mujoco.mjtSensor.mjSENS_FORCE), ("ft_torque", mujoco.mjtSensor.mjSENS_TORQUE)):
         spec.add_sensor(name=name, type=kind, objtype=mujoco.mjtObj.mjOBJ_SITE, objname="ft")
+    # a parallel gripper: the right finger follows the left one (polynomial q_r = q_l)
+    coupling = spec.add_equality(type=mujoco.mjtEq.mjEQ_JOINT, name1="finger_left", name2="finger_right")
+    coupling.data[:5] = [0.0, 1.0, 0.0, 0.0, 0.0]
     world = spec.worldbody
     world.add_site(name="pick", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[*PICK_XY, 0.0004], size=[0.04, 0.04, 0.0004],
                    rgba=[0.3, 0.3, 0.9, 0.4])
