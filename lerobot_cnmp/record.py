@@ -2,7 +2,9 @@
 
 Generic over the sims of :data:`lerobot_cnmp.envs.SIMS`: the sim's ``EnvConfig`` builds the env, its expert
 drives it for ``demo_length`` steps, and each frame stores the observation *before* the action together with
-the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` at its last step).
+the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` at its last step). Vector
+features are stored as float32; image features (``pixels/<name>`` in the EnvConfig, uint8 H x W x C) as
+PNG frames (dtype ``image``, no video encoding).
 
 The dataset is written atomically: into a temporary sibling folder, finalized, given a dataset card, then
 renamed to ``root``.
@@ -16,16 +18,22 @@ from __future__ import annotations
 
 import argparse
 import collections
+import os
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from lerobot.configs import FeatureType
 from tqdm import tqdm
 
 from lerobot_cnmp.envs import SIMS, SimSpec
+
+IMAGE_WRITER_THREADS = 2  # threads writing the PNG frames of image features
+
 
 class DemoFailedError(RuntimeError):
     """The scripted expert's demonstration did not succeed."""
@@ -38,16 +46,39 @@ def _get_spec(sim: str) -> SimSpec:
 
 
 def _dataset_features(cfg, spec: SimSpec) -> dict:
-    """LeRobotDataset features from the EnvConfig's features/features_map (float32 vectors, named)."""
+    """LeRobotDataset features from the EnvConfig's features/features_map: float32 vectors (named), and
+    images (``VISUAL`` features of shape (H, W, C), stored as PNG frames: dtype ``image``)."""
     features = {}
     for key, feat in cfg.features.items():
+        if feat.type is FeatureType.VISUAL:
+            if len(feat.shape) != 3 or not key.startswith("pixels/"):
+                raise ValueError(
+                    f"image feature {key!r} of shape {feat.shape}: the recorder handles 'pixels/<name>' "
+                    "features of shape (height, width, channels)"
+                )
+            features[cfg.features_map[key]] = {
+                "dtype": "image",
+                "shape": tuple(feat.shape),
+                "names": ["height", "width", "channels"],
+            }
+            continue
         if len(feat.shape) != 1:
-            raise ValueError(f"feature {key!r} has shape {feat.shape}; the recorder only handles vectors")
+            raise ValueError(
+                f"feature {key!r} has shape {feat.shape}; the recorder only handles vectors and images"
+            )
         names = spec.feature_names.get(key) or [f"{key}_{i}" for i in range(feat.shape[0])]
         if len(names) != feat.shape[0]:
             raise ValueError(f"{len(names)} names given for feature {key!r} of shape {feat.shape}")
         features[cfg.features_map[key]] = {"dtype": "float32", "shape": tuple(feat.shape), "names": list(names)}
     return features
+
+
+def _frame_value(obs: dict, key: str, dtype: str) -> np.ndarray:
+    """The value of env-observation feature ``key`` in ``obs``: ``pixels/<name>`` is the uint8 image
+    ``obs["pixels"][name]`` (H, W, C), anything else a float32 vector."""
+    if dtype == "image":
+        return np.asarray(obs["pixels"][key.split("/", 1)[1]], dtype=np.uint8)
+    return np.asarray(obs[key], dtype=np.float32)
 
 
 def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str) -> str:
@@ -74,6 +105,7 @@ def _write_card(
     labels: list[str],
     kinds: list[str],
     command: str,
+    elapsed_s: float,
 ) -> None:
     counts = collections.Counter(labels)
     feat_rows = "\n".join(
@@ -139,6 +171,8 @@ position-servo target). {spec.features_note}
 ```
 
 Seed {seed}: episode i is reset with seed {seed} + i, so the same command gives identical data.
+Generating it took {elapsed_s:.1f} s ({elapsed_s / n_episodes:.3f} s per episode) on a machine with
+{os.cpu_count()} CPU cores.
 
 ## License
 
@@ -166,7 +200,8 @@ def record_dataset(
         seed: episode ``i`` is reset with ``seed + i``.
         repo_id: dataset repo id (default ``lerobot-cnmp/<sim>``).
         overwrite: replace an existing ``root``.
-        conditions: the env's ``conditions`` option (the sim's recording default when None).
+        conditions: the sim's conditions choice, passed to its env config through
+            ``SimSpec.config_kwargs`` (the sim's recording default when None).
         progress: show a tqdm progress bar.
 
     Raises:
@@ -194,6 +229,8 @@ def record_dataset(
     )
     features = _dataset_features(cfg, spec)
     obs_keys = [k for k in cfg.features if cfg.features_map[k] != "action"]
+    obs_dtypes = {k: features[cfg.features_map[k]]["dtype"] for k in obs_keys}
+    has_images = "image" in obs_dtypes.values()
 
     try:  # the per-episode "Map" bars of `datasets` would drown our own progress bar
         from datasets.utils import logging as ds_logging
@@ -211,9 +248,16 @@ def record_dataset(
         base = env.unwrapped
         expert = spec.expert_cls(base, demo_length=spec.demo_length)
         ds = LeRobotDataset.create(
-            repo_id=repo_id, fps=cfg.fps, features=features, root=tmp_parent / "dataset", use_videos=False
+            repo_id=repo_id,
+            fps=cfg.fps,
+            features=features,
+            root=tmp_parent / "dataset",
+            use_videos=False,
+            # PNG encoding of image frames in background threads (finalize stops them)
+            image_writer_threads=IMAGE_WRITER_THREADS if has_images else 0,
         )
         labels, kinds = [], []
+        t_start = time.perf_counter()
         for i in tqdm(range(n_episodes), desc=f"recording {sim}", unit="episode", disable=not progress):
             obs, info = env.reset(seed=seed + i, options=spec.reset_options(i, conditions))
             expert.reset()
@@ -221,7 +265,7 @@ def record_dataset(
             frames = []
             for k in range(spec.demo_length):
                 action = np.asarray(expert.act(k), dtype=np.float32)
-                frame = {cfg.features_map[key]: np.asarray(obs[key], dtype=np.float32) for key in obs_keys}
+                frame = {cfg.features_map[key]: _frame_value(obs, key, obs_dtypes[key]) for key in obs_keys}
                 frame["action"] = action
                 frame["task"] = task_str
                 frames.append(frame)
@@ -241,6 +285,8 @@ def record_dataset(
             labels.append(spec.episode_label(base))
             kinds.append(str(getattr(base, "condition_kind", conditions)))
         ds.finalize()
+        elapsed_s = time.perf_counter() - t_start
+        _remove_empty_dirs(tmp_parent / "dataset" / "images")  # LeRobot's PNG staging, emptied per episode
         _write_card(
             tmp_parent / "dataset" / "README.md",
             sim=sim,
@@ -254,6 +300,7 @@ def record_dataset(
             labels=labels,
             kinds=kinds,
             command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions),
+            elapsed_s=elapsed_s,
         )
         # swap in atomically: the old dataset (if any) is only removed once the new one is complete
         trash = None
@@ -275,6 +322,17 @@ def record_dataset(
         if ds_logging is not None and bars_were_on:
             ds_logging.enable_progress_bar()
     return root
+
+
+def _remove_empty_dirs(folder: Path) -> None:
+    """Remove ``folder`` and the folders below it that hold no file."""
+    if not folder.is_dir():
+        return
+    for sub in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        if not any(sub.iterdir()):
+            sub.rmdir()
+    if not any(folder.iterdir()):
+        folder.rmdir()
 
 
 def _display_path(root: Path) -> Path:

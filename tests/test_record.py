@@ -79,6 +79,7 @@ def test_recorded_dataset_loads(recorded):
     assert "lerobot-cnmp-record --sim cnmp_obstacle2d" in card and "--seed 0" in card
     assert "| over | 2 |" in card and "| under | 2 |" in card
     assert "license" in card.lower()
+    assert "CPU cores" in card and "s per episode" in card  # how long generation took, and where
     # no temp folders left next to the dataset
     assert [p.name for p in recorded.parent.iterdir()] == ["ds"]
 
@@ -140,3 +141,37 @@ def test_cli(tmp_path):
     assert (tmp_path / "cli" / "meta" / "info.json").exists()
     assert "--seed 3" in (tmp_path / "cli" / "README.md").read_text()
     assert record_mod.main(["--sim", SIM, "--root", str(tmp_path / "cli"), "--n_episodes", "1"]) == 1
+
+
+def test_record_room_images(tmp_path):
+    """Image features: the room's mask is stored as PNG frames and loads back as LeRobot's float CHW."""
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_cnmp.envs.room import RoomEnv
+
+    repo = "lerobot-cnmp/test_room"
+    root = record_mod.record_dataset("cnmp_room", tmp_path / "room", n_episodes=2, seed=5, repo_id=repo,
+                                     progress=False)
+    ds = LeRobotDataset(repo, root=root)
+    T = SIMS["cnmp_room"].demo_length
+    assert ds.num_episodes == 2 and ds.meta.total_frames == 2 * T == 200
+    feat = ds.meta.features["observation.images.top"]
+    assert feat["dtype"] == "image" and tuple(feat["shape"]) == (64, 64, 3)
+    assert feat["names"] == ["height", "width", "channels"]
+    assert tuple(ds.meta.features["observation.environment_state"]["shape"]) == (18,)
+    assert not (root / "videos").exists() and not (root / "images").exists()  # embedded PNGs, no video
+    env = RoomEnv(render_mode=None)
+    for ep in range(2):
+        env.reset(seed=5 + ep)
+        expected = torch.from_numpy(env.mask).permute(2, 0, 1).float() / 255
+        for k in (0, T - 1):
+            item = ds[ep * T + k]
+            img = item["observation.images.top"]
+            assert img.shape == (3, 64, 64) and img.dtype == torch.float32
+            torch.testing.assert_close(img, expected, rtol=0, atol=0)
+            assert conditions_from_vector(item["observation.environment_state"].numpy(), sm_dim=2)
+        np.testing.assert_allclose(ds[ep * T]["observation.state"].numpy(), env.task.start, atol=1e-6)
+    env.close()
+    card = (root / "README.md").read_text()
+    assert "PNG" in card and "CPU cores" in card and "first |" in card

@@ -7,13 +7,15 @@ from typing import Any, Callable
 
 import gymnasium as gym
 
-from lerobot_cnmp.envs import pickplace, weights
+from lerobot_cnmp.envs import pickplace, room, weights
 from lerobot_cnmp.envs.configs import (
     OBSTACLE2D_GYM_ID,
     PICKPLACE_GYM_ID,
+    ROOM_GYM_ID,
     WEIGHTS_GYM_ID,
     CNMPObstacle2DEnv,
     CNMPPickPlaceEnv,
+    CNMPRoomEnv,
     CNMPWeightsEnv,
 )
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
@@ -22,6 +24,7 @@ for _gym_id, _entry_point, _max_steps in (
     (OBSTACLE2D_GYM_ID, "lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv", DEFAULT_MAX_EPISODE_STEPS),
     (PICKPLACE_GYM_ID, "lerobot_cnmp.envs.pickplace:PickPlaceEnv", pickplace.DEFAULT_MAX_EPISODE_STEPS),
     (WEIGHTS_GYM_ID, "lerobot_cnmp.envs.weights:WeightsEnv", weights.DEFAULT_MAX_EPISODE_STEPS),
+    (ROOM_GYM_ID, "lerobot_cnmp.envs.room:RoomEnv", room.DEFAULT_MAX_EPISODE_STEPS),
 ):
     if _gym_id not in gym.registry:
         gym.register(id=_gym_id, entry_point=_entry_point, max_episode_steps=_max_steps)
@@ -191,7 +194,7 @@ def _weights_spec() -> SimSpec:
         config_kwargs=_records_only("cnmp_weights", "demo_masses", "its demo masses"),
         features_note=(
             "`observation.state` and `action` are the SM in task space: the tool point (x, y, z, m), the two "
-            "finger joint positions (m) and the wrist force/torque reading (N, N·m, zeroed at reset, 20 ms "
+            "finger joint positions (m) and the wrist force/torque reading (N, N·m, zeroed at reset, 100 ms "
             "low-pass). The env ignores the F/T entries of an action (forces cannot be commanded); the "
             "expert fills them with the previous reading. The container's class (shape, weight category) "
             "is in the episode labels above only, never in a feature."
@@ -209,11 +212,68 @@ def _weights_spec() -> SimSpec:
     )
 
 
+def _room_config_kwargs(conditions: str) -> dict[str, Any]:
+    # the recorder's --conditions is the env's `condition` option (checked by CNMPRoomEnv)
+    return {"condition": conditions}
+
+
+def _room_spec() -> SimSpec:
+    from lerobot_cnmp.experts.room import RoomExpert
+
+    return SimSpec(
+        env_config_cls=CNMPRoomEnv,
+        expert_cls=RoomExpert,
+        demo_length=room.DEMO_LENGTH,
+        default_episodes=1000,
+        default_conditions="start_end",
+        feature_names={
+            "action": ["x", "y"],
+            "agent_pos": ["x", "y"],
+            "environment_state": _condition_names(room.MAX_CONDITIONS, ["x", "y"]),
+        },
+        episode_label=lambda env: env.task.layout,
+        config_kwargs=_room_config_kwargs,
+        features_note=(
+            "`observation.images.top` is the room's top-down binary mask, "
+            f"{room.DEFAULT_IMAGE_SIZE} x {room.DEFAULT_IMAGE_SIZE} RGB (the three channels equal), 255 on the "
+            "obstacles and 0 on the free floor, constant within an episode and stored as PNG frames (dtype "
+            "`image`, no video). Image row 0 is the top of the room (y = 1) and column 0 its left side "
+            f"(x = 0): pixel (r, c) covers x = (c + 0.5) / {room.DEFAULT_IMAGE_SIZE}, y = 1 - (r + 0.5) / "
+            f"{room.DEFAULT_IMAGE_SIZE} at its centre; the "
+            "walls lie just outside the imaged square. `observation.environment_state` holds the episode's "
+            "conditions, constant within an episode, in the layout of `lerobot_cnmp.conditions` with SM "
+            "dimension 2 and 3 slots: slot k is `[present, phase, x, y, mask_x, mask_y]` (unused slots all "
+            "zeros)."
+        ),
+        description=(
+            "A MuJoCo point mass (sphere, radius 0.02, mass 1; two slide joints with critically damped "
+            "position servos, 2 ms physics step, 10 physics steps per 50 Hz control step) crosses a walled "
+            "room, x, y in [0, 1], from left to right around two rectangular obstacles attached to opposite "
+            "walls, as in the top-down image experiment of Seker et al. (RSS 2019, Sec. IV-B). Each episode "
+            "draws a room: one obstacle centred at x in [0.25, 0.45] and one at x in [0.55, 0.75], one hanging "
+            "from the bottom wall and the other from the top wall (which one at random: the episode label "
+            "bottom-first / top-first names the wall of the left one), widths in [0.06, 0.14], lengths into the "
+            "room in [0.35, 0.6]; a start at x in [0.05, 0.12] and an end at x in [0.88, 0.95], y in "
+            f"[0.1, 0.9]. Rooms whose plan below is not valid (waypoints less than {room.MIN_TRANSITION_DX:g} "
+            f"apart in x, e.g. obstacles overlapping in x, or a path closer than {room.MIN_CLEARANCE:g} to an "
+            "obstacle or wall) are redrawn, about 1 draw in 5. A scripted expert (the paper's simple heuristic) "
+            f"passes each obstacle through the middle of its gap: waypoints start, (left face - {room.MARGIN:g}, "
+            f"gap centre), (right face + {room.MARGIN:g}, gap centre) per obstacle, end; y(x) is the monotone "
+            "PCHIP cubic through them, traversed by arc length "
+            "with a minimum-jerk time law (zero velocity at both ends), and commanded at each step's phase "
+            "(tau_k = k/99); the recorded positions are those the simulated servo reached. Conditions (the "
+            "env's `condition`): `start_end`, the planned start (phase 0) and end (phase 1); `via_end`, the "
+            "planned point at a phase drawn in [0.3, 0.7] and the end; `via`, that point only."
+        ),
+    )
+
+
 SIMS: dict[str, SimSpec] = {
     "cnmp_obstacle2d": _obstacle2d_spec(),
     "cnmp_pickplace": _pickplace_spec(),
     "cnmp_weights": _weights_spec(),
+    "cnmp_room": _room_spec(),
 }
 
-__all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPWeightsEnv", "SIMS", "SimSpec", "OBSTACLE2D_GYM_ID",
-           "PICKPLACE_GYM_ID", "WEIGHTS_GYM_ID", "ENV_STATE_DIM"]
+__all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPRoomEnv", "CNMPWeightsEnv", "SIMS", "SimSpec",
+           "OBSTACLE2D_GYM_ID", "PICKPLACE_GYM_ID", "ROOM_GYM_ID", "WEIGHTS_GYM_ID", "ENV_STATE_DIM"]

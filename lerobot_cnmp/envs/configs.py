@@ -1,4 +1,5 @@
-"""LeRobot ``EnvConfig``s for the CNMP sims (``--env.type=cnmp_obstacle2d``, ``--env.type=cnmp_pickplace``)."""
+"""LeRobot ``EnvConfig``s for the CNMP sims (``--env.type=cnmp_obstacle2d``, ``cnmp_pickplace``, ``cnmp_weights``,
+``cnmp_room``)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from dataclasses import dataclass, field
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_cnmp.configuration_cnmp import TASK_PARAMS
 
@@ -18,10 +19,17 @@ from lerobot_cnmp.envs.obstacle2d import (
     ENV_STATE_DIM,
     PERTURBATION_CHOICES,
 )
+from lerobot_cnmp.envs.room import CONDITION_CHOICES as ROOM_CONDITION_CHOICES
+from lerobot_cnmp.envs.room import CONTROL_FPS as ROOM_CONTROL_FPS
+from lerobot_cnmp.envs.room import DEFAULT_IMAGE_SIZE as ROOM_DEFAULT_IMAGE_SIZE
+from lerobot_cnmp.envs.room import DEFAULT_MAX_EPISODE_STEPS as ROOM_MAX_EPISODE_STEPS
+from lerobot_cnmp.envs.room import ENV_STATE_DIM as ROOM_ENV_STATE_DIM
+from lerobot_cnmp.envs.room import MAX_IMAGE_SIZE as ROOM_MAX_IMAGE_SIZE
 
 OBSTACLE2D_GYM_ID = "cnmp/Obstacle2D-v0"
 PICKPLACE_GYM_ID = "cnmp/PickPlace-v0"
 WEIGHTS_GYM_ID = "cnmp/Weights-v0"
+ROOM_GYM_ID = "cnmp/Room-v0"
 
 
 @dataclass
@@ -211,3 +219,60 @@ class CNMPWeightsEnv(CNMPSimConfig):
     @property
     def gym_kwargs(self) -> dict:
         return {"perturbation": self.perturbation, **self._common_gym_kwargs()}
+
+
+@EnvConfig.register_subclass("cnmp_room")
+@dataclass
+class CNMPRoomEnv(CNMPSimConfig):
+    """Point mass crossing a room around two obstacles, seen as a top-down binary mask image (CNMP paper,
+    Sec. IV-B).
+
+    The env's observation ``pixels["top"]`` reaches the policy as ``observation.images.top`` (LeRobot's
+    ``preprocess_observation``: float CHW in [0, 1]); its feature ``pixels/top`` is built from ``image_size``.
+
+    Fields:
+        task: gymnasium task name (the id is ``cnmp/<task>``).
+        fps: control frequency, Hz (10 physics steps of 2 ms per control step).
+        episode_length: steps before truncation (the demonstrated motion takes 100).
+        condition: the conditions of each episode, points of the room's planned path: ``start_end``
+            (default; the start at phase 0 and the end at phase 1), ``via_end`` (a point at a phase drawn
+            in [0.3, 0.7], and the end) or ``via`` (that point only).
+        image_size: side of the square mask image, pixels (16 to 1024).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
+    """
+
+    task: str | None = "Room-v0"
+    fps: int = ROOM_CONTROL_FPS
+    episode_length: int = ROOM_MAX_EPISODE_STEPS
+    condition: str = "start_end"
+    image_size: int = ROOM_DEFAULT_IMAGE_SIZE
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(ROOM_ENV_STATE_DIM,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+            "pixels/top": f"{OBS_IMAGES}.top",
+        }
+    )
+
+    def __post_init__(self):
+        self._check_choice("task", ("Room-v0",))
+        self._check_choice("condition", ROOM_CONDITION_CHOICES)
+        if not 16 <= self.image_size <= ROOM_MAX_IMAGE_SIZE:
+            raise ValueError(f"image_size must be in [16, {ROOM_MAX_IMAGE_SIZE}] pixels, got {self.image_size}")
+        self._check_common()
+        # the image feature is built here, not in the default factory, so that it follows image_size
+        self.features["pixels/top"] = PolicyFeature(
+            type=FeatureType.VISUAL, shape=(self.image_size, self.image_size, 3)
+        )
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"condition": self.condition, "image_size": self.image_size, **self._common_gym_kwargs()}
