@@ -261,6 +261,32 @@ def test_lerobot_train_then_eval_smoke(tmp_path):
     assert "pc_success" in text
 
 
+def test_image_cnmp_through_lerobot_train_and_eval(tmp_path):
+    """The image path of the stock CLI: a few room demos recorded with their masks, lerobot-train with
+    configs/cnmp_room.json (conv encoder), lerobot-eval on cnmp_room with the via-point condition."""
+    from lerobot_cnmp.record import record_dataset
+
+    root = record_dataset("cnmp_room", tmp_path / "room", n_episodes=3, seed=7, progress=False)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": "egl"}
+    train = subprocess.run(
+        [str(BIN / "lerobot-train"), f"--config_path={REPO / 'configs' / 'cnmp_room.json'}",
+         f"--dataset.root={root}", "--steps=4", "--batch_size=2", "--num_workers=0", "--save_freq=4",
+         "--log_freq=2", "--policy.device=cpu", f"--output_dir={tmp_path / 'train'}"],
+        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
+    )
+    assert train.returncode == 0, train.stderr[-4000:]
+    ckpt = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
+    cfg = json.loads((ckpt / "config.json").read_text())
+    assert cfg["use_images"] and cfg["input_features"]["observation.images.top"]["shape"] == [3, 64, 64]
+    ev = subprocess.run(
+        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=cnmp_room", "--env.condition=via",
+         "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu", f"--output_dir={tmp_path / 'eval'}"],
+        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
+    )
+    assert ev.returncode == 0, ev.stderr[-4000:]
+    assert "pc_success" in (tmp_path / "eval" / "eval_info.json").read_text()
+
+
 def test_start_and_current_state_enter_the_context(policy_and_data):
     """After reset the first sensed state is kept as a condition at t = 0; the current state enters at τ - Δ."""
     policy, _ = policy_and_data
