@@ -430,6 +430,14 @@ class CNMPPolicy(PreTrainedPolicy):
         steps = f", {cfg.steps} steps of batch {cfg.batch_size}" if cfg is not None else ""
         groups = list((eval_info or {}).get("per_group", {}))  # lerobot-eval's eval_info names the env
         env_type = groups[0] if groups else "<env type, e.g. cnmp_obstacle2d>"
+        images = ""
+        if c.image_keys:
+            images = (f"\n- Images ({', '.join(f'`{k}`' for k in c.image_keys)}) through a conv encoder: 3x3 conv + 2x2 "
+                      f"max-pool per width in {list(c.image_channels)}, embedding {c.image_embed_dim} per image.")
+        # the in-memory API (CNMPModel) takes SM trajectories only: image checkpoints run as a policy
+        imports = "load_pretrained" if c.image_keys else "CNMPModel, load_pretrained"
+        api = ("" if c.image_keys else
+               f'\nmodel = CNMPModel.load("{repo_id}")                                   # or the in-memory API')
         results = "No evaluation figures were attached to this card."
         if eval_info:
             overall = eval_info.get("overall", eval_info)
@@ -448,7 +456,7 @@ the sensed state, PD tracking and phase stopping.
 - Data: {trained}{steps}.
 - SM (`action`): {c.sm_dim} dims; inputs: {inputs}; task parameters γ: {c.task_dim} dims.
 - Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
-  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.
+  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.{images}
 - Every setting is in `config.json`; the normalization statistics are in the processor files.
 
 ## Evaluation
@@ -463,9 +471,8 @@ lerobot-eval --policy.path={repo_id} --env.type={env_type} --eval.n_episodes=50 
 ```
 
 ```python
-from lerobot_cnmp.api import CNMPModel, load_pretrained
-policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the checkpoint's own statistics
-model = CNMPModel.load("{repo_id}")                                   # or the in-memory API
+from lerobot_cnmp.api import {imports}
+policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the checkpoint's own statistics{api}
 ```
 """
         return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")

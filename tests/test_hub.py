@@ -88,6 +88,25 @@ def test_dataset_round_trip(fake_hub):
     assert "LeRobot" in card and "cnmp" in card and "UR10" in card  # LeRobot's card with our description
 
 
+def test_image_dataset_round_trip(fake_hub, tmp_path):
+    """The room's masks (PNG frames in the parquet files) come back from the Hub pixel for pixel."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_cnmp.record import record_dataset
+
+    root = record_dataset("cnmp_room", tmp_path / "room", n_episodes=2, seed=3, progress=False)
+    push_dataset(root, "you/cnmp_room")
+    pulled = fake_hub / "datasets" / "you" / "cnmp_room"
+    back, original = LeRobotDataset("you/cnmp_room", root=pulled), LeRobotDataset("x/y", root=root)
+    assert back.num_frames == original.num_frames == 200
+    for i in (0, 150):
+        a, b = original[i], back[i]
+        assert a["observation.images.top"].shape == (3, 64, 64)
+        for key in ("observation.images.top", "observation.environment_state", "action"):
+            torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+    assert back.meta.features["observation.images.top"]["dtype"] == "image"
+
+
 def test_checkpoint_round_trip_gives_identical_predictions(fake_hub, checkpoint):
     info = {"overall": {"pc_success": 90.0, "n_episodes": 10}, "per_group": {"cnmp_obstacle2d": {}}}
     url = push_checkpoint(checkpoint, "you/cnmp_toy", eval_info=info)

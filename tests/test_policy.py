@@ -554,6 +554,9 @@ def test_images_condition_the_cnmp_through_a_conv_encoder():
     with pytest.raises(KeyError, match=IMG):
         policy.reset()
         policy.select_action({OBS_STATE: torch.zeros(1, 2)})
+    card = str(policy.generate_model_card("you/rooms", repo_id="you/cnmp_img"))
+    assert "conv encoder" in card and "[4, 8], embedding 6" in card
+    assert "CNMPModel.load" not in card  # the in-memory API takes no images
 
 
 def test_image_config_errors():
