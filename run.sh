@@ -3,6 +3,8 @@
 #   bash run.sh main   set up, build the default dataset if absent, train CNMP with lerobot-train,
 #                      evaluate with lerobot-eval, plot, and print the success rate and file paths
 #   bash run.sh test   set up and run the test suite
+#   bash run.sh room   the image-conditioned CNMP (paper Sec. IV-B): record the 1000-room dataset if absent,
+#                      train, evaluate each condition type with lerobot-eval, draw docs/fig6_room.png (~45 min)
 #   bash run.sh setup  only create .venv (Python 3.12) and `pip install -e .[test,bench]`
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -64,6 +66,37 @@ print(f"videos     : {out / 'eval' / 'videos'}")
 PYEOF
 }
 
+room_job() {
+  setup
+  local out=outputs/room
+  local data=datasets/cnmp_room
+  if [ ! -f "$data/meta/info.json" ]; then
+    echo "== recording $data (1000 rooms, ~8 min)"
+    "$VENV/bin/lerobot-cnmp-record" --sim cnmp_room --root "$data"
+  fi
+  rm -rf "$out/train"
+  echo "== training: lerobot-train --config_path=configs/cnmp_room.json"
+  "$VENV/bin/lerobot-train" --config_path=configs/cnmp_room.json --policy.device=cpu --output_dir="$out/train"
+  local ckpt="$out/train/checkpoints/last/pretrained_model"
+  for c in start_end via_end via; do
+    rm -rf "$out/eval_$c"
+    echo "== evaluating: lerobot-eval on cnmp_room, condition $c, 50 unseen rooms"
+    "$VENV/bin/lerobot-eval" --policy.path="$ckpt" --env.type=cnmp_room --env.condition=$c --eval.n_episodes=50 \
+        --eval.batch_size=10 --policy.device=cpu --output_dir="$out/eval_$c" --seed=100000
+  done
+  "$PY" bench/room_fig6.py --checkpoint "$ckpt"
+  "$PY" - "$out" <<'PYEOF'
+import json, sys, pathlib
+out = pathlib.Path(sys.argv[1])
+print("\n================ lerobot-cnmp room job ================")
+for c in ("start_end", "via_end", "via"):
+    info = json.loads((out / f"eval_{c}" / "eval_info.json").read_text())
+    print(f"{c:>9}: success rate (lerobot-eval, 50 unseen rooms): {info['overall']['pc_success']:.1f} %")
+print(f"checkpoint : {out / 'train/checkpoints/last/pretrained_model'}")
+print("figure     : docs/fig6_room.png")
+PYEOF
+}
+
 run_tests() {
   setup
   echo "== pytest"
@@ -78,6 +111,7 @@ run_tests() {
 case "${1:-}" in
   setup) setup ;;
   main) main_job ;;
+  room) room_job ;;
   test) shift; run_tests "$@" ;;
-  *) echo "usage: bash run.sh {main|test|setup}" >&2; exit 2 ;;
+  *) echo "usage: bash run.sh {main|room|test|setup}" >&2; exit 2 ;;
 esac
