@@ -236,29 +236,36 @@ def test_plugin_discovery_in_fresh_process():
     assert out.stdout.strip().splitlines()[-1] == "CNMPPolicy True"
 
 
-def test_lerobot_train_then_eval_smoke(tmp_path):
-    """A few steps of the stock CLI: lerobot-train on the committed dataset, then lerobot-eval on the sim."""
+def _train_then_eval(tmp_path, config: str, dataset: Path, train_args: list[str], eval_args: list[str]) -> Path:
+    """lerobot-train with ``configs/<config>`` on ``dataset`` (a few steps), then lerobot-eval of its checkpoint;
+    returns the checkpoint folder. Both CLIs run as subprocesses, as a user runs them."""
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": "egl"}
     train = subprocess.run(
-        [str(BIN / "lerobot-train"), f"--config_path={REPO / 'configs' / 'cnmp_obstacle2d.json'}",
-         f"--dataset.root={DATASET}", "--steps=10", "--batch_size=4", "--num_workers=0", "--save_freq=10",
-         "--log_freq=5", "--policy.device=cpu", f"--output_dir={tmp_path / 'train'}"],
+        [str(BIN / "lerobot-train"), f"--config_path={REPO / 'configs' / config}", f"--dataset.root={dataset}",
+         "--num_workers=0", "--policy.device=cpu", f"--output_dir={tmp_path / 'train'}", *train_args],
         capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
     )
     assert train.returncode == 0, train.stderr[-4000:]
     ckpt = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
     assert (ckpt / "model.safetensors").is_file() and (ckpt / "config.json").is_file()
-    assert json.loads((ckpt / "config.json").read_text())["demo_length"] == 200
     ev = subprocess.run(
-        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=cnmp_obstacle2d",
-         "--eval.n_episodes=2", "--eval.batch_size=2", "--policy.device=cpu",
-         f"--output_dir={tmp_path / 'eval'}"],
+        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--policy.device=cpu",
+         f"--output_dir={tmp_path / 'eval'}", *eval_args],
         capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
     )
     assert ev.returncode == 0, ev.stderr[-4000:]
-    info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
-    text = json.dumps(info)
-    assert "pc_success" in text
+    assert "pc_success" in (tmp_path / "eval" / "eval_info.json").read_text()
+    return ckpt
+
+
+def test_lerobot_train_then_eval_smoke(tmp_path):
+    """A few steps of the stock CLI: lerobot-train on the committed dataset, then lerobot-eval on the sim."""
+    ckpt = _train_then_eval(
+        tmp_path, "cnmp_obstacle2d.json", DATASET,
+        ["--steps=10", "--batch_size=4", "--save_freq=10", "--log_freq=5"],
+        ["--env.type=cnmp_obstacle2d", "--eval.n_episodes=2", "--eval.batch_size=2"],
+    )
+    assert json.loads((ckpt / "config.json").read_text())["demo_length"] == 200
 
 
 def test_image_cnmp_through_lerobot_train_and_eval(tmp_path):
@@ -267,24 +274,13 @@ def test_image_cnmp_through_lerobot_train_and_eval(tmp_path):
     from lerobot_cnmp.record import record_dataset
 
     root = record_dataset("cnmp_room", tmp_path / "room", n_episodes=3, seed=7, progress=False)
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": "egl"}
-    train = subprocess.run(
-        [str(BIN / "lerobot-train"), f"--config_path={REPO / 'configs' / 'cnmp_room.json'}",
-         f"--dataset.root={root}", "--steps=4", "--batch_size=2", "--num_workers=0", "--save_freq=4",
-         "--log_freq=2", "--policy.device=cpu", f"--output_dir={tmp_path / 'train'}"],
-        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
+    ckpt = _train_then_eval(
+        tmp_path, "cnmp_room.json", root,
+        ["--steps=4", "--batch_size=2", "--save_freq=4", "--log_freq=2"],
+        ["--env.type=cnmp_room", "--env.condition=via", "--eval.n_episodes=1", "--eval.batch_size=1"],
     )
-    assert train.returncode == 0, train.stderr[-4000:]
-    ckpt = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
     cfg = json.loads((ckpt / "config.json").read_text())
     assert cfg["use_images"] and cfg["input_features"]["observation.images.top"]["shape"] == [3, 64, 64]
-    ev = subprocess.run(
-        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=cnmp_room", "--env.condition=via",
-         "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu", f"--output_dir={tmp_path / 'eval'}"],
-        capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path,
-    )
-    assert ev.returncode == 0, ev.stderr[-4000:]
-    assert "pc_success" in (tmp_path / "eval" / "eval_info.json").read_text()
 
 
 def test_start_and_current_state_enter_the_context(policy_and_data):
