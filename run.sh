@@ -4,7 +4,7 @@
 #                      evaluate with lerobot-eval, plot, and print the success rate and file paths
 #   bash run.sh test   set up and run the test suite
 #   bash run.sh room   the image-conditioned CNMP (paper Sec. IV-B): record the 1000-room dataset if absent,
-#                      train, evaluate each condition type with lerobot-eval, draw docs/fig6_room.png (~45 min)
+#                      train, evaluate each condition type with lerobot-eval, draw docs/fig6_room.png (~25 min)
 #   bash run.sh setup  only create .venv (Python 3.12) and `pip install -e .[test,bench]`
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -71,7 +71,7 @@ room_job() {
   local out=outputs/room
   local data=datasets/cnmp_room
   if [ ! -f "$data/meta/info.json" ]; then
-    echo "== recording $data (1000 rooms, ~8 min)"
+    echo "== recording $data (1000 rooms, ~5 min)"
     "$VENV/bin/lerobot-cnmp-record" --sim cnmp_room --root "$data"
   fi
   rm -rf "$out/train"
