@@ -1,4 +1,5 @@
-"""What the bench scripts share: paths, and the config's CNMP built for the in-memory API."""
+"""What the bench scripts share: paths, the config's CNMP built for the in-memory API, and one-env
+closed-loop helpers (an env observation as the policy's batch, the SM predicted in the env's units)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,30 @@ API_FIELDS = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_target
               "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
               "feedback_dims")
 """The config's policy fields that the in-memory API takes over (model, sampling, optimizer)."""
+
+
+def policy_batch(pre, obs: dict) -> dict:
+    """One env's gymnasium observation (``pixels`` a dict of images) as the policy's preprocessed batch of 1,
+    as ``lerobot-eval``'s rollout builds it (LeRobot's ``preprocess_observation``, then the preprocessor)."""
+    from lerobot.envs.utils import preprocess_observation
+
+    batched = {k: ({n: v[None] for n, v in x.items()} if isinstance(x, dict) else x[None]) for k, x in obs.items()}
+    return pre({**preprocess_observation(batched), "task": [""]})
+
+
+def predict_sm(policy, pre, post, batch: dict, phase, query_phases):
+    """(μ, σ) of the SM at ``query_phases`` in the env's units, [len(query_phases), D] numpy each: the
+    CNMP conditioned as the executor is at ``phase`` (the conditions, the start, the state sensed in
+    ``batch``)."""
+    import torch
+
+    from lerobot_cnmp.api import normalizer_stats
+
+    phase = torch.as_tensor(phase, dtype=torch.float32).reshape(1)
+    query = torch.as_tensor(query_phases, dtype=torch.float32).reshape(1, -1)
+    with torch.no_grad():
+        mean, std = policy.executor()(policy.execution_context(batch, phase), query)
+    return post(mean[0]).numpy(), std[0].numpy() * normalizer_stats(pre)["action"]["std"]
 
 
 def make_sim(env_cfg, policy, n_envs: int):

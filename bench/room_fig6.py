@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO  # noqa: E402
+from common import REPO, policy_batch, predict_sm  # noqa: E402
 
 CHECKPOINT = REPO / "outputs" / "room" / "train" / "checkpoints" / "last" / "pretrained_model"
 OUT = REPO / "docs" / "fig6_room.png"
@@ -35,28 +35,16 @@ def run_episode(policy, pre, post, env, seed: int, n_phases: int = 100) -> dict:
     """One closed-loop episode in ``env`` (a :class:`RoomEnv`) reset with ``seed``: the executed path, the
     final info, and the trajectory predicted from the first step's context (mean, σ: [n_phases, 2])."""
     import torch
-    from lerobot.envs.utils import preprocess_observation
-    from lerobot.processor import UnnormalizerProcessorStep
-
-    unnorm = next(s for s in post.steps if isinstance(s, UnnormalizerProcessorStep))
-    scale = np.asarray(unnorm.stats["action"]["std"])
-
-    def batch_of(obs):
-        batched = {"agent_pos": obs["agent_pos"][None], "environment_state": obs["environment_state"][None],
-                   "pixels": {"top": obs["pixels"]["top"][None]}}
-        return pre({**preprocess_observation(batched), "task": [""]})
 
     obs, info = env.reset(seed=seed)
     policy.reset()
     path, predicted = [obs["agent_pos"].copy()], None
     for _ in range(env.spec.max_episode_steps if env.spec else 150):
-        batch = batch_of(obs)
+        batch = policy_batch(pre, obs)
         with torch.no_grad():
             action = policy.select_action(batch)
-            if predicted is None:  # the plan of the first step: conditions, start, image
-                phases = torch.linspace(0.0, 1.0, n_phases)[None]
-                mean, std = policy.executor()(policy.execution_context(batch, torch.zeros(1)), phases)
-                predicted = (post(mean[0]).numpy(), std[0].numpy() * scale)
+        if predicted is None:  # the plan of the first step: conditions, start, image
+            predicted = predict_sm(policy, pre, post, batch, 0.0, np.linspace(0.0, 1.0, n_phases))
         obs, _, terminated, truncated, info = env.step(post(action)[0].numpy())
         path.append(obs["agent_pos"].copy())
         if terminated or truncated:

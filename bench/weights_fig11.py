@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, checkpoint_or_train  # noqa: E402
+from common import REPO, checkpoint_or_train, policy_batch, predict_sm  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -34,23 +34,19 @@ AFTER = 15  # steps after the lift / the switch at which the prediction is shown
 def run_episode(policy, pre, post, env, shape: int, mass: float, seed: int, max_steps: int) -> dict:
     """One closed-loop episode; per step the phase, the sensed SM and the predicted end (μ, σ) of (x, y)."""
     import torch
-    from lerobot.envs.utils import preprocess_observation
-    from lerobot.processor import UnnormalizerProcessorStep
 
-    unnorm = next(s for s in post.steps if isinstance(s, UnnormalizerProcessorStep))
-    scale = np.asarray(unnorm.stats["action"]["std"])[:2]
     obs, info = env.reset(seed=seed, options={"shape": shape, "mass": mass})
     policy.reset()
     log = {"phase": [], "state": [], "end_mean": [], "end_std": [], "lifted": [], "switched": []}
     for _ in range(max_steps):
-        batch = pre({**preprocess_observation({"agent_pos": obs["agent_pos"][None]}), "task": [""]})
+        batch = policy_batch(pre, obs)
         with torch.no_grad():
             action = policy.select_action(batch)
-            mean, std = policy.executor()(policy.execution_context(batch, policy._phase), torch.ones(1, 1))
+        mean, std = predict_sm(policy, pre, post, batch, policy._phase, [1.0])  # the end, as the executor sees it
         log["phase"].append(float(policy._phase[0]))
         log["state"].append(obs["agent_pos"].copy())
-        log["end_mean"].append(post(mean[:, 0])[0, :2].numpy())
-        log["end_std"].append(std[0, 0, :2].numpy() * scale)
+        log["end_mean"].append(mean[0, :2])
+        log["end_std"].append(std[0, :2])
         log["lifted"].append(bool(info["lifted"]))
         log["switched"].append(bool(info["weight_switched"]))
         obs, _, terminated, truncated, info = env.step(post(action)[0].numpy())
