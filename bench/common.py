@@ -11,10 +11,10 @@ CONFIG = REPO / "configs" / "cnmp_obstacle2d.json"
 DATASET = REPO / "datasets" / "cnmp_obstacle2d"
 CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pretrained_model"
 
-API_FIELDS = ("encoder_layers", "decoder_layers", "n_max_context", "m_max_targets", "context_in_targets",
+API_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "n_max_context", "m_max_targets", "context_in_targets",
               "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
-              "feedback_dims")
-"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer)."""
+              "feedback_dims", "tracking_dims", "pd_dims", "pd_kp", "pd_kd", "phase_stop_threshold")
+"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer, execution)."""
 
 
 def policy_batch(pre, obs: dict) -> dict:
