@@ -1,9 +1,19 @@
-"""What the CNMP MuJoCo sims share: the episode options, the end of a step and rendering."""
+"""What the CNMP MuJoCo sims share: the episode options, the end of a step, rendering and contact queries."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 import mujoco
+import numpy as np
+
+
+def contacts_with(data, gid: int) -> np.ndarray:
+    """Geom ids in contact with geom ``gid`` now."""
+    if data.ncon == 0:
+        return np.zeros(0, dtype=int)
+    pairs = data.contact.geom[: data.ncon]
+    other = np.where(pairs[:, 0] == gid, pairs[:, 1], np.where(pairs[:, 1] == gid, pairs[:, 0], -1))
+    return other[other >= 0]
 
 
 class MujocoSimEnv(gym.Env):

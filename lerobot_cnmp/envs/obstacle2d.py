@@ -27,7 +27,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with  # noqa: E402
 
 from lerobot_cnmp.conditions import Condition, encode_conditions  # noqa: E402
 
@@ -365,11 +365,7 @@ class Obstacle2DEnv(MujocoSimEnv):
         return {"agent_pos": self.data.qpos[:2].astype(np.float32), "environment_state": self._env_state.copy()}
 
     def _in_contact(self) -> bool:
-        for i in range(self.data.ncon):
-            c = self.data.contact[i]
-            if {int(c.geom1), int(c.geom2)} == {self._obstacle_gid, self._agent_gid}:
-                return True
-        return False
+        return self._obstacle_gid in contacts_with(self.data, self._agent_gid)
 
     def _update_progress(self):
         pos = self.data.qpos[:2]

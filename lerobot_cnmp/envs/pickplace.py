@@ -48,7 +48,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 CONTROL_FPS = 50
@@ -506,15 +506,6 @@ def servo_control_step(model, data, prev_command, joint_command, on_substep=None
             on_substep()
     d.ctrl[ARM_POS_CTRL] = target
     return target
-
-
-def contacts_with(data, gid: int) -> np.ndarray:
-    """Geom ids in contact with geom ``gid`` now."""
-    if data.ncon == 0:
-        return np.zeros(0, dtype=int)
-    pairs = data.contact.geom[: data.ncon]
-    other = np.where(pairs[:, 0] == gid, pairs[:, 1], np.where(pairs[:, 1] == gid, pairs[:, 0], -1))
-    return other[other >= 0]
 
 
 # --- the env --------------------------------------------------------------------------------------------

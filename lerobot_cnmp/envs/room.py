@@ -59,7 +59,7 @@ from scipy.interpolate import PchipInterpolator  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
 from lerobot_cnmp.conditions import Condition, encode_conditions  # noqa: E402
-from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 SM_DIM = 2
@@ -474,14 +474,7 @@ class RoomEnv(MujocoSimEnv):
         }
 
     def _in_contact(self) -> bool:
-        for i in range(self.data.ncon):
-            c = self.data.contact[i]
-            g1, g2 = int(c.geom1), int(c.geom2)
-            if (g1 == self._agent_gid and g2 in self._blocking_gids) or (
-                g2 == self._agent_gid and g1 in self._blocking_gids
-            ):
-                return True
-        return False
+        return not self._blocking_gids.isdisjoint(contacts_with(self.data, self._agent_gid).tolist())
 
     def _update_progress(self):
         pos = self.data.qpos[:2]
