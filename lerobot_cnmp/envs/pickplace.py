@@ -48,7 +48,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with, minimum_jerk  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 CONTROL_FPS = 50
@@ -366,11 +366,6 @@ def grasp_height(object_cm: float) -> float:
     return float(GRASP_MIN_Z + k * np.logaddexp(0.0, (z - GRASP_MIN_Z) / k))
 
 
-def _min_jerk(u):
-    u = np.clip(u, 0.0, 1.0)
-    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
-
-
 def tcp_plan(task_params, demo_length: int = DEMO_LENGTH, clearance: float = WALL_CLEARANCE):
     """Cartesian plan of the expert: ``(tcp positions [T, 3], gripper command [T])`` for gamma (cm).
 
@@ -393,7 +388,7 @@ def tcp_plan(task_params, demo_length: int = DEMO_LENGTH, clearance: float = WAL
     z_apex = z_g + wall_top + clearance  # object bottom = tcp z - z_g
 
     def seg(k0, k1):
-        return _min_jerk((k - k0) / (k1 - k0))[:, None]
+        return minimum_jerk((k - k0) / (k1 - k0))[:, None]
 
     pos = np.tile(HOME_TCP, (T, 1))
     s = seg(P["start_approach"], P["pregrasp"])
@@ -411,7 +406,7 @@ def tcp_plan(task_params, demo_length: int = DEMO_LENGTH, clearance: float = WAL
     s = seg(P["start_retreat"], P["end"])
     pos = np.where(k[:, None] >= P["start_retreat"], place + s * (retreat - place), pos)
 
-    grip = _min_jerk((k - P["grasp"]) / (P["closed"] - P["grasp"])) - _min_jerk(
+    grip = minimum_jerk((k - P["grasp"]) / (P["closed"] - P["grasp"])) - minimum_jerk(
         (k - P["placed"]) / (P["opened"] - P["placed"])
     )
     return pos, grip

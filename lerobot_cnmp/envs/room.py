@@ -59,7 +59,7 @@ from scipy.interpolate import PchipInterpolator  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
 from lerobot_cnmp.conditions import Condition, encode_conditions  # noqa: E402
-from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, contacts_with, minimum_jerk  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 SM_DIM = 2
@@ -229,12 +229,6 @@ class RoomTask:
 
 
 # --- the planner -----------------------------------------------------------------------------------------
-def minimum_jerk(tau):
-    """``10 tau^3 - 15 tau^4 + 6 tau^5``: 0 -> 1 with zero velocity and acceleration at both ends."""
-    tau = np.asarray(tau, dtype=np.float64)
-    return tau**3 * (10.0 + tau * (-15.0 + 6.0 * tau))
-
-
 def waypoints(task: RoomTask) -> tuple[np.ndarray, np.ndarray]:
     """The planner's waypoints ``(x [6], y [6])``: start, each obstacle's gap centre ``MARGIN`` before and
     after it, end."""
@@ -266,12 +260,8 @@ def plan_path(task: RoomTask, phases) -> np.ndarray:
     """The planned position at ``phases`` (scalar or array in [0, 1], clipped) -> ``[..., 2]``: the PCHIP
     curve through :func:`waypoints`, at arc length ``L * minimum_jerk(phase)``."""
     pts, s = _path_table(task)
-    target = s[-1] * minimum_jerk(np.clip(np.asarray(phases, dtype=np.float64), 0.0, 1.0))
+    target = s[-1] * minimum_jerk(np.asarray(phases, dtype=np.float64))
     return np.stack([np.interp(target, s, pts[:, 0]), np.interp(target, s, pts[:, 1])], axis=-1)
-
-
-def path_length(task: RoomTask) -> float:
-    return float(_path_table(task)[1][-1])
 
 
 def distance_to_obstacles(task: RoomTask, points) -> np.ndarray:

@@ -74,7 +74,7 @@ import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
 from lerobot_cnmp.envs import pickplace as pp  # noqa: E402
-from lerobot_cnmp.envs.base import MujocoSimEnv  # noqa: E402
+from lerobot_cnmp.envs.base import MujocoSimEnv, minimum_jerk  # noqa: E402
 
 # --- constants of the sim ------------------------------------------------------------------------------
 CONTROL_FPS = pp.CONTROL_FPS
@@ -172,7 +172,7 @@ def finger_servo_target(command):
     the pads stop on the container and squeeze it with the force limit) below ``SQUEEZE_FULL_BELOW``, the
     command itself at the open position, blended smoothly in between."""
     c = np.asarray(command, dtype=np.float64)
-    w = 1.0 - pp._min_jerk((c - SQUEEZE_FULL_BELOW) / (pp.FINGER_OPEN - SQUEEZE_FULL_BELOW))
+    w = 1.0 - minimum_jerk((c - SQUEEZE_FULL_BELOW) / (pp.FINGER_OPEN - SQUEEZE_FULL_BELOW))
     return c - w * (c - FINGER_CMD_RANGE[0])
 
 
@@ -208,10 +208,10 @@ def tcp_plan(shape: int, zone: int, steps, demo_length: int = DEMO_LENGTH):
     )
     pos = np.tile(home, (len(k), 1))
     for k0, k1, a, b in segments:
-        s = pp._min_jerk((k - P[k0]) / (P[k1] - P[k0]))[:, None]
+        s = minimum_jerk((k - P[k0]) / (P[k1] - P[k0]))[:, None]
         pos = np.where(k[:, None] >= P[k0], a + s * (b - a), pos)
     closed = finger_contact_opening(shape)
-    grip = pp._min_jerk((k - P["grasp"]) / (P["closed"] - P["grasp"])) - pp._min_jerk(
+    grip = minimum_jerk((k - P["grasp"]) / (P["closed"] - P["grasp"])) - minimum_jerk(
         (k - P["placed"]) / (P["opened"] - P["placed"])
     )
     fingers = pp.FINGER_OPEN + grip * (closed - pp.FINGER_OPEN)

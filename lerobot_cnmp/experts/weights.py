@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_cnmp.envs import pickplace as pp
+from lerobot_cnmp.envs.base import minimum_jerk
 from lerobot_cnmp.envs.weights import (
     DEMO_LENGTH,
     FINGER_SM,
@@ -67,7 +67,7 @@ class WeightsExpert:
             s, ramp, delay, delta = self._replan
             carry_end = self._scale(PHASE_STEPS["carry_end"])
             if k >= s:
-                offset = pp._min_jerk((k - s) / ramp) * delta
+                offset = minimum_jerk((k - s) / ramp) * delta
                 hold = max(carry_end, s)
                 if delay > 0 and k >= hold:  # hold where the plan is, then go on
                     k = hold if k < hold + delay else k - delay
