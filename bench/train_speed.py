@@ -53,12 +53,12 @@ def median_rate(model, demos, batch_size: int, steps: int) -> float:
     return float(np.median(rates))
 
 
-def lerobot_steps_per_s(config: Path, batch_size: int, steps: int, extra: list[str]) -> dict:
+def lerobot_steps_per_s(config: Path, dataset: Path, batch_size: int, steps: int, extra: list[str]) -> dict:
     log_freq = max(steps // 8, 10)
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
             str(Path(sys.executable).parent / "lerobot-train"), f"--config_path={config}",
-            f"--dataset.root={dataset_root(json.loads(config.read_text()))}", f"--steps={steps}",
+            f"--dataset.root={dataset}", f"--steps={steps}",
             f"--batch_size={batch_size}", f"--log_freq={log_freq}", "--save_checkpoint=false",
             "--policy.device=cpu", f"--output_dir={Path(tmp) / 'out'}", *extra,
         ]
@@ -100,7 +100,7 @@ def main() -> dict:
         from lerobot_cnmp.data import load_demos
 
         step_ms_batch1 = 1e3 / median_rate(api_model(batch1), load_demos(dataset_root(cfg))["demos"], 1, args.steps)
-    stock = lerobot_steps_per_s(config, args.batch_size, args.steps, args.lerobot_args.split())
+    stock = lerobot_steps_per_s(config, dataset_root(cfg), args.batch_size, args.steps, args.lerobot_args.split())
     res = {
         "config": str(config.relative_to(REPO)) if config.is_relative_to(REPO) else str(config),
         "train_steps_per_s_api": None if images else round(api, 2),
