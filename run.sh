@@ -34,6 +34,18 @@ setup() {
     "$PY" -m pip install -q -e ".[test,bench]" 2>&1 | grep -v "^WARNING: Location" || true
     "$PY" -c "import lerobot_policy_cnmp" || { echo "error: installation failed" >&2; exit 1; }
   fi
+  # torchcodec, LeRobot's video decoder, loads the system FFmpeg (4-8) libraries; without them LeRobot
+  # prints a long traceback and falls back to pyav
+  if ! command -v ffmpeg >/dev/null 2>&1; then
+    if [ "$(id -u)" -eq 0 ] && command -v apt-get >/dev/null 2>&1; then
+      echo "== installing ffmpeg (apt-get) for torchcodec's video decoding"
+      { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ffmpeg >/dev/null; } \
+        || echo "warning: apt-get install ffmpeg failed; LeRobot will decode videos with pyav" >&2
+    else
+      echo "warning: FFmpeg not found: install it (e.g. 'sudo apt-get install ffmpeg', 'brew install ffmpeg')" \
+           "for torchcodec's video decoding; until then LeRobot falls back to pyav" >&2
+    fi
+  fi
 }
 
 main_job() {
