@@ -12,7 +12,7 @@ DATASET = REPO / "datasets" / "cnmp_obstacle2d"
 CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pretrained_model"
 
 API_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "n_max_context", "m_max_targets", "context_in_targets",
-              "draws_per_sample", "partial_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
+              "draws_per_sample", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
               "feedback_dims", "tracking_dims", "pd_dims", "pd_kp", "pd_kd", "phase_stop_threshold")
 """The config's policy fields that the in-memory API takes over (model, sampling, optimizer, execution)."""
 
@@ -32,13 +32,12 @@ def predict_sm(policy, pre, post, batch: dict, phase, query_phases):
     ``batch``)."""
     import torch
 
-    from lerobot_cnmp.api import normalizer_stats
-
     phase = torch.as_tensor(phase, dtype=torch.float32).reshape(1)
     query = torch.as_tensor(query_phases, dtype=torch.float32).reshape(1, -1)
     with torch.no_grad():
         mean, std = policy.executor()(policy.execution_context(batch, phase), query)
-    return post(mean[0]).numpy(), std[0].numpy() * normalizer_stats(pre)["action"]["std"]
+    n = policy.normalizer
+    return post(n.sm_inverse(mean[0])).numpy(), (std[0] * n.sm_std).numpy()
 
 
 def make_sim(env_cfg, policy, n_envs: int):

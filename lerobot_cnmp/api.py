@@ -20,11 +20,12 @@ from tqdm.auto import trange
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
+from lerobot_cnmp.bank import EpisodeBank
 from lerobot_cnmp.conditions import Condition, layout_size
 from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
-from lerobot_cnmp.modeling_cnmp import PHASE_KEY, CNMPPolicy, Context
+from lerobot_cnmp.modeling_cnmp import CNMPPolicy, Context
 
-__all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos"]
+__all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos", "sm_stats"]
 
 
 def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,18 +60,28 @@ class CNMPModel:
         self, config: CNMPConfig | None = None, device: str = "cpu", max_conditions: int = 4, **overrides
     ):
         """``max_conditions``: condition slots of ``observation.environment_state`` a saved checkpoint
-        declares, so that it runs in a CNMP env (``lerobot-eval``) as a ``lerobot-train`` one does."""
+        declares, so that it runs in a CNMP env (``lerobot-eval``) as a ``lerobot-train`` one does.
+
+        The demos are SM trajectories in the tied layout (``state_tracks_action``): the SM is what a saved
+        checkpoint commands as ``action`` and senses as ``observation.state``."""
         self.config = config
         self.max_conditions = max_conditions
         self.overrides = overrides
         self.device = device
         self.policy: CNMPPolicy | None = None
-        self.sm_mean = self.sm_std = self.task_mean = self.task_std = None
+
+    def _stat(self, name: str):
+        return None if self.policy is None else getattr(self.policy.normalizer, name).cpu().numpy()
+
+    sm_mean = property(lambda self: self._stat("sm_mean"))
+    sm_std = property(lambda self: self._stat("sm_std"))
+    task_mean = property(lambda self: None if not self.config or not self.config.task_dim else self._stat("task_mean"))
+    task_std = property(lambda self: None if not self.config or not self.config.task_dim else self._stat("task_std"))
 
     # ---- fitting --------------------------------------------------------------------------------------
 
-    def _build(self, sm_dim: int, task_dim: int, demo_length: int) -> None:
-        cfg = self.config or CNMPConfig(device=self.device, **self.overrides)
+    def _build(self, sm_dim: int, task_dim: int) -> None:
+        cfg = self.config or CNMPConfig(device=self.device, state_tracks_action=True, **self.overrides)
         cfg.device = self.device
         cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(sm_dim,))}
         # The execution features a CNMP env provides: sensed SM state and condition slots.
@@ -80,8 +91,6 @@ class CNMPModel:
         }
         if task_dim:
             cfg.input_features[TASK_PARAMS] = PolicyFeature(type=FeatureType.STATE, shape=(task_dim,))
-        if cfg.demo_length is None:
-            cfg.demo_length = demo_length
         self.config = cfg
         self.policy = CNMPPolicy(cfg).to(self.device)
 
@@ -95,13 +104,17 @@ class CNMPModel:
         progress: bool = True,
         callback=None,
         callback_every: int = 500,
+        fps: float | None = None,
     ) -> CNMPModel:
         """Train on demonstrations ``[N, T, D]`` (or a list of ``[T_i, D]``), optionally with per-demo task
-        parameters γ ``[N, G]``. Each step draws ``batch_size`` demos and, from each, observations and queries.
+        parameters γ ``[N, G]``, recorded at ``fps`` (None: one frame per control step). Each step draws
+        ``batch_size`` demos (each with probability ∝ its length, as ``lerobot-train`` does) and, from each,
+        observations and queries over the whole demo: the same sampler and loss as ``lerobot-train``.
 
         ``callback(steps_done, model)``, if given, runs every ``callback_every`` steps and after the last one,
         with the model in eval mode (e.g. to track a validation error); returning True stops training there."""
-        values, valid, phase = pad_demos(demos)
+        values, valid, _ = pad_demos(demos)
+        seqs = [values[i, : int(valid[i].sum())] for i in range(len(values))]
         n, _, d = values.shape
         gamma = None
         if task_params is not None:
@@ -114,23 +127,14 @@ class CNMPModel:
             raise ValueError(
                 f"steps, batch_size and callback_every must be >= 1; got {steps}, {batch_size}, {callback_every}"
             )
+        bank = EpisodeBank.from_arrays(seqs, gamma, fps)
         if self.policy is None:
-            flat = values[valid]
-            from lerobot_cnmp.processor_cnmp import floored_sm_std
-
-            self.sm_mean, self.sm_std = flat.mean(0), floored_sm_std(flat.std(0))
-            if gamma is not None:
-                self.task_mean, self.task_std = gamma.mean(0), np.maximum(gamma.std(0), 1e-6)
-            lengths = valid.sum(1)
-            self._build(d, 0 if gamma is None else gamma.shape[1], int(np.median(lengths)))
+            self._build(d, 0 if gamma is None else gamma.shape[1])
         elif d != self.config.sm_dim:
             raise ValueError(f"demos have SM dimension {d}, the model has {self.config.sm_dim}")
+        self.policy.set_bank(bank, fps)
         dev = self.device
-        x = torch.from_numpy((values - self.sm_mean) / self.sm_std).to(dev)
-        pad = torch.from_numpy(~valid).to(dev)
-        ph = torch.from_numpy(phase).to(dev)
-        g = None if gamma is None else torch.from_numpy(self._norm_task(gamma)).to(dev)
-        gen = torch.Generator(device=dev).manual_seed(seed)
+        gen = torch.Generator(device="cpu").manual_seed(seed)
         torch.manual_seed(seed)
         policy = self.policy
         policy.train()
@@ -141,10 +145,7 @@ class CNMPModel:
         self.history: list[dict] = []
         bar = trange(steps, desc="CNMP fit", disable=not progress)
         for step in bar:
-            idx = torch.randint(n, (batch_size,), generator=gen, device=dev)
-            batch = {ACTION: x[idx], f"{ACTION}_is_pad": pad[idx], PHASE_KEY: ph[idx]}
-            if g is not None:
-                batch[TASK_PARAMS] = g[idx]
+            batch = {"episode_index": bank.sample_episodes(batch_size, gen)}
             loss, info = policy.forward(batch, generator=gen)
             optim.zero_grad(set_to_none=True)
             loss.backward()
@@ -194,7 +195,7 @@ class CNMPModel:
             m = c.mask()
             if not np.isfinite(v[m > 0]).all():
                 raise ValueError(f"condition {k} has NaN or infinite values in its constrained dims")
-            ph[0, k], vals[0, k], mask[0, k] = c.phase, np.nan_to_num((v - self.sm_mean) / self.sm_std), m
+            ph[0, k], vals[0, k], mask[0, k] = c.phase, np.nan_to_num((v - self.sm_mean) / self.sm_std) * m, m
         gamma = None
         if self.config.task_dim:
             if task_params is None:
@@ -219,12 +220,6 @@ class CNMPModel:
 
     # ---- persistence ----------------------------------------------------------------------------------
 
-    def dataset_stats(self) -> dict:
-        stats = {ACTION: {"mean": self.sm_mean, "std": self.sm_std}}
-        if self.task_mean is not None:
-            stats[TASK_PARAMS] = {"mean": self.task_mean, "std": self.task_std}
-        return stats
-
     def save(self, path: str | Path) -> Path:
         """Write a LeRobot checkpoint: config.json, model.safetensors and the processors (with stats)."""
         from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
@@ -232,7 +227,7 @@ class CNMPModel:
         self._require_fitted()
         path = Path(path)
         self.policy.save_pretrained(path)
-        pre, post = make_cnmp_pre_post_processors(self.config, self.dataset_stats())
+        pre, post = make_cnmp_pre_post_processors(self.config)
         pre.save_pretrained(path)
         post.save_pretrained(path)
         return path
@@ -241,23 +236,21 @@ class CNMPModel:
     def load(cls, path: str | Path, device: str = "cpu") -> CNMPModel:
         """Load a checkpoint written by ``save`` or by ``lerobot-train`` (its ``pretrained_model`` folder)."""
         policy, pre, _ = load_pretrained(path, device=device)
+        if not policy.config.spec.tied:
+            raise ValueError(f"the checkpoint at {path} models a joint SM ({', '.join(policy.config.sm_names or [])}); "
+                             "CNMPModel takes tied SM trajectories: use load_pretrained(path) for it")
         model = cls(config=policy.config, device=device)
         model.policy = policy
-        stats = normalizer_stats(pre)
-        model.sm_mean, model.sm_std = (np.asarray(stats[ACTION][k], np.float32) for k in ("mean", "std"))
-        if TASK_PARAMS in stats:
-            model.task_mean, model.task_std = (np.asarray(stats[TASK_PARAMS][k], np.float32) for k in ("mean", "std"))
         return model
 
 
-def normalizer_stats(preprocessor) -> dict:
-    """The statistics held by a preprocessor's normalizer step, as numpy arrays."""
-    from lerobot.processor import NormalizerProcessorStep
-
-    for step in preprocessor.steps:
-        if isinstance(step, NormalizerProcessorStep):
-            return {k: {s: np.asarray(v.cpu() if hasattr(v, "cpu") else v) for s, v in d.items()} for k, d in step.stats.items()}
-    raise ValueError("the preprocessor has no normalizer step")
+def sm_stats(policy) -> dict:
+    """The SM's (and γ's) normalization statistics a CNMP policy holds, as numpy arrays."""
+    n = policy.normalizer
+    out = {"sm": {"mean": n.sm_mean.cpu().numpy(), "std": n.sm_std.cpu().numpy()}}
+    if policy.config.task_dim:
+        out["task"] = {"mean": n.task_mean.cpu().numpy(), "std": n.task_std.cpu().numpy()}
+    return out
 
 
 def load_pretrained(path: str | Path, device: str | None = None):
@@ -299,7 +292,6 @@ def load_pretrained(path: str | Path, device: str | None = None):
     pre, post = make_pre_post_processors(
         policy.config, pretrained_path=path, preprocessor_overrides=overrides
     )
-    stats = normalizer_stats(pre)
-    if ACTION not in stats:
-        raise ValueError(f"the checkpoint at {path} has no normalization statistics for {ACTION!r}")
+    if not policy.normalizer.ready:
+        raise ValueError(f"the checkpoint at {path} has no SM normalization statistics")
     return policy, pre, post

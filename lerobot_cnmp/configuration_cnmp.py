@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
+from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, CosineDecayWithWarmupSchedulerConfig, OptimizerConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 
-TASK_PARAMS = "observation.task_params"
-"""Fixed name of the per-episode task-parameter feature γ (dataset feature and env observation
-``task_params``)."""
+from lerobot_cnmp import sm_spec
+from lerobot_cnmp.conditions import slot_size
+from lerobot_cnmp.sm_spec import TASK_PARAMS, SMSpec
 
 
 @OptimizerConfig.register_subclass("cnmp_adam")
@@ -33,13 +33,28 @@ class CNMPAdamConfig(AdamConfig):
 class CNMPConfig(PreTrainedConfig):
     """Conditional Neural Movement Primitive.
 
-    The sensorimotor (SM) trajectory the CNMP learns is the dataset's ``action`` sequence: ``action[k]`` is
-    the SM target commanded at frame ``k``, at phase ``t = k / (T - 1)`` of its episode of ``T`` frames.
+    The sensorimotor (SM) trajectory the CNMP learns is a set of dataset dims over phase (see
+    :mod:`lerobot_cnmp.sm_spec`): by default ``observation.state`` ⊕ ``action`` (sensed and commanded dims),
+    frame ``k`` of an episode at phase ``t`` = its time since the episode's start / the episode's duration.
+    Execution conditions on the sensed dims of the live observation and outputs the predicted ``action``.
     Conditions (via-points, goals, in SM units) reach the policy through ``observation.environment_state``
-    in the layout of :mod:`lerobot_cnmp.conditions`; the current sensed SM is ``observation.state``; the
-    optional task parameters γ are the feature ``observation.task_params``.
+    in the layout of :mod:`lerobot_cnmp.conditions` (when the dataset's ``environment_state`` has that
+    layout); task parameters γ are features read at an episode's first frame.
 
     Args:
+        sm: The SM declaration: entries ``"feature"`` (all its dims) or ``"feature:dim"`` (a dim by the
+            dataset's dim name or index), in order; every ``action`` dim must be included (execution outputs
+            them); dims of other features are *sensed* (fed back online). None: ``observation.state`` and
+            ``action`` (just ``action`` with ``state_tracks_action``). Training rewrites it in the canonical
+            ``"feature:index"`` form (saved in the checkpoint) and fills ``sm_names``.
+        state_tracks_action: The tied layout: the SM is ``action`` and ``observation.state`` measures those
+            same dims, reaching each command within a control step (our sims' position servos). The sensed
+            state is then fed back as the SM point the previous command reached and a PD law (``pd_*``) tracks
+            the prediction. False (default): nothing assumes the state equals a command.
+        task_features: Features read at each episode's first frame as task parameters γ (numeric vectors).
+            None: ``observation.task_params`` if present, else an ``observation.environment_state`` that is not
+            in the CNMP condition layout (e.g. an object's position). Resolved at training.
+        sm_names: The SM dims' names (filled at training from the dataset's dim names).
         encoder_layers: Widths of the encoder E's layers; the last is the size of the representation r.
         decoder_layers: Hidden widths of the query network Q (its output layer, 2 x SM dim, is added).
         phase_frequencies: K > 0 adds sin/cos(k·π·t), k = 1..K, to the phase input of E and Q (Fourier
@@ -51,23 +66,28 @@ class CNMPConfig(PreTrainedConfig):
             which trains the model to pass through its conditions. The paper draws queries independently.
         partial_obs_prob: Probability that a sampled observation constrains only a random non-empty subset
             of the SM dimensions, so the model can be conditioned on any subset of dimensions.
-        draws_per_sample: Independent (observations, queries) draws made from each loaded episode window per
-            step. The batch the loss sees is batch_size x draws_per_sample draws; with ``lerobot-train`` this
-            multiplies the training signal per loaded sample, which is the costly part on CPU.
-        max_episode_length: Longest demonstration (frames) the stock ``lerobot-train`` window must cover.
-        window_size: Number of frame offsets, spread over [-(max_episode_length-1), max_episode_length-1],
-            that ``lerobot-train`` loads per sample (``action_delta_indices``). Each sample then sees about
-            window_size / 2 frames of its episode at random phases. Loading cost is linear in it.
-        use_task_params: Condition on γ (``observation.task_params``). None: use it when the dataset has it.
-            True: require it (a dataset without it is rejected).
+        sensed_obs_prob: Probability that a sampled observation (not already a partial one) constrains exactly
+            the sensed dims, as execution's feedback does (joint layout only; the tied layout senses every dim).
+        draws_per_sample: Independent (observations, queries) draws made from each sampled episode per step:
+            the loss sees batch_size x draws_per_sample draws. Every draw takes its frames from the whole
+            episode (:mod:`lerobot_cnmp.bank`), so this only multiplies the training signal per loaded sample
+            (``lerobot-train`` loads one frame per sample, for its episode id).
+        use_task_params: Condition on γ (``task_features``). None: use it when the dataset has it. True:
+            require it (a dataset without it is rejected). False: ignore it.
         use_images: Condition on the image features (``observation.images.*``) through a conv encoder, as the
-            paper's Sec. IV-B does with a top-down mask of the room. None: when the dataset has images.
-            True: require them. Each image is embedded once per sample and joins γ as an episode-level input.
+            paper's Sec. IV-B does with a top-down mask of the room. Off unless True (a dataset's cameras are
+            then required). The encoder sees each episode's *first* camera frame, in training (read once per
+            episode from the dataset) and in execution (the frame at the first step after ``reset``); its
+            embedding joins γ as an episode-level input.
         image_channels: Widths of the conv encoder's layers (3x3 conv + ReLU + 2x2 max-pool each; the
             paper: 8, 16, 32, 64). Images need sides of at least 2^len(image_channels) pixels.
         image_embed_dim: Size of each image's embedding (a linear layer after the convolutions).
-        demo_length: Frames of a demonstration. None: taken from the training dataset (median episode
-            length) when training starts.
+        demo_duration_s: Duration of a demonstration in seconds (the median over the training episodes,
+            from their timestamps; set when training starts). Execution runs the movement in this time.
+        dataset_fps: The training dataset's frame rate (set when training starts).
+        control_fps: The rate at which execution is called (``select_action`` per second). None: the
+            dataset's fps. The phase advances by 1 / (control_fps x demo_duration_s) per step, so a robot
+            controlled at another rate than the recording runs the movement in the same time.
         online_feedback: The paper's execution loop: every control step, condition on the current sensed SM
             (``feedback_dims`` of ``observation.state``) besides the episode's conditions, track the
             prediction with the PD law below, and stop the phase while the tracking error is large.
@@ -78,11 +98,13 @@ class CNMPConfig(PreTrainedConfig):
             E.g. feed force readings back (they carry the information) but stop the phase on position only.
         condition_on_start: Keep the state sensed at the first step after ``reset()`` as a condition at
             t = 0 for the whole episode (the start of the movement, as in the paper's Fig. 2).
-        phase_step: Phase advance per control step; None: 1 / (demo_length - 1), the demonstrations' pace.
+        phase_step: Phase advance per control step; None: 1 / (control_fps x demo_duration_s), the
+            demonstrations' pace in seconds.
         phase_stop_threshold: The phase does not advance while the tracking error (max over the fed-back
             dims of |sensed SM - SM commanded at the previous step|, in action standard deviations) is above
             this. None: never stop.
-        pd_kp, pd_kd: PD law on the position target: action = s + kp·e + kd·(e - e_prev), e = SM(τ) - s.
+        pd_kp, pd_kd: PD law on the position target (tied layout only; the joint layout outputs the
+            predicted action itself): action = s + kp·e + kd·(e - e_prev), e = SM(τ) - s.
             kp < 1 approaches the prediction gradually (a first-order lag), which keeps the accelerations,
             and the inertial loads a wrist F/T sensor reads, close to the demonstrations' when the prediction
             jumps after re-conditioning.
@@ -117,22 +139,25 @@ class CNMPConfig(PreTrainedConfig):
     m_max_targets: int = 16
     context_in_targets: bool = True
     partial_obs_prob: float = 0.25
+    sensed_obs_prob: float = 0.5
     draws_per_sample: int = 1
 
-    # Stock lerobot-train data window.
-    max_episode_length: int = 200
-    window_size: int = 32
-
-    # Task parameters γ.
+    # The SM space (lerobot_cnmp.sm_spec) and task parameters γ.
+    sm: tuple[str, ...] | None = None
+    state_tracks_action: bool = False
+    task_features: tuple[str, ...] | None = None
+    sm_names: tuple[str, ...] | None = None
     use_task_params: bool | None = None
 
     # Images (paper Sec. IV-B): a conv encoder embeds each image feature; the embedding joins γ.
-    use_images: bool | None = None
+    use_images: bool = False
     image_channels: tuple[int, ...] = (8, 16, 32, 64)
     image_embed_dim: int = 32
 
     # Execution (paper Sec. III: online conditioning, PD tracking, phase stopping).
-    demo_length: int | None = None
+    demo_duration_s: float | None = None
+    dataset_fps: float | None = None
+    control_fps: float | None = None
     online_feedback: bool = True
     feedback_dims: tuple[int, ...] | None = None
     tracking_dims: tuple[int, ...] | None = None
@@ -157,10 +182,13 @@ class CNMPConfig(PreTrainedConfig):
 
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
+            # CNMP normalizes its SM and γ itself, with statistics saved in its weights (SMNormalizer in
+            # modeling_cnmp): LeRobot's normalizer steps pass these features through, so the statistics
+            # lerobot-train gives them when fine-tuning (--policy.path) cannot change CNMP's scaling.
             "VISUAL": NormalizationMode.IDENTITY,
-            "STATE": NormalizationMode.MEAN_STD,
-            "ENV": NormalizationMode.MEAN_STD,
-            "ACTION": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.IDENTITY,
+            "ENV": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.IDENTITY,
         }
     )
 
@@ -186,16 +214,20 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(
                 f"n_max_context and m_max_targets must be >= 1, got {self.n_max_context}, {self.m_max_targets}"
             )
+        if not 0.0 <= self.sensed_obs_prob <= 1.0:
+            raise ValueError(f"sensed_obs_prob must be in [0, 1], got {self.sensed_obs_prob}")
         if not 0.0 <= self.partial_obs_prob <= 1.0:
             raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
         if self.draws_per_sample < 1:
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
-        if self.max_episode_length < 2:
-            raise ValueError(f"max_episode_length must be >= 2, got {self.max_episode_length}")
-        if self.window_size < 2:
-            raise ValueError(f"window_size must be >= 2, got {self.window_size}")
-        if self.demo_length is not None and self.demo_length < 2:
-            raise ValueError(f"demo_length must be >= 2 frames, got {self.demo_length}")
+        if self.demo_duration_s is not None and not self.demo_duration_s > 0:
+            raise ValueError(f"demo_duration_s must be > 0, got {self.demo_duration_s}")
+        for name in ("dataset_fps", "control_fps"):
+            if getattr(self, name) is not None and not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("sm", "task_features", "sm_names"):
+            if getattr(self, name) is not None:
+                setattr(self, name, tuple(str(x) for x in getattr(self, name)))
         if self.phase_step is not None and not 0.0 < self.phase_step <= 1.0:
             raise ValueError(f"phase_step must be in (0, 1], got {self.phase_step}")
         if self.phase_stop_threshold is not None and not self.phase_stop_threshold > 0:
@@ -214,11 +246,12 @@ class CNMPConfig(PreTrainedConfig):
                     raise ValueError(f"{name} must name at least one SM dimension (or be None)")
         for kind in ("STATE", "ENV", "ACTION"):
             mode = self.normalization_mapping.get(kind, NormalizationMode.IDENTITY)
-            if mode not in (NormalizationMode.MEAN_STD, NormalizationMode.IDENTITY):
+            if mode is not NormalizationMode.IDENTITY:
                 raise ValueError(
-                    f"normalization_mapping[{kind!r}] = {mode}: CNMP conditions are normalized with the action "
-                    "statistics, which supports MEAN_STD or IDENTITY only"
+                    f"normalization_mapping[{kind!r}] = {mode}: CNMP normalizes its SM and γ itself (statistics "
+                    "saved with its weights); LeRobot's normalizer must pass them through (IDENTITY)"
                 )
+        self._spec: SMSpec | None = None
 
     # ---- LeRobot interface -------------------------------------------------------------------------
 
@@ -227,11 +260,10 @@ class CNMPConfig(PreTrainedConfig):
         return None
 
     @property
-    def action_delta_indices(self) -> list[int]:
-        """Sparse offsets spanning a whole episode from any anchor frame (see ``window_size``)."""
-        span = self.max_episode_length - 1
-        n = self.window_size
-        return sorted({round(-span + 2 * span * i / (n - 1)) for i in range(n)})
+    def action_delta_indices(self) -> None:
+        """None: ``lerobot-train`` loads one frame per sample (for its episode id); the policy draws the
+        sample's observations and queries from the whole episode (:mod:`lerobot_cnmp.bank`)."""
+        return None
 
     @property
     def reward_delta_indices(self) -> None:
@@ -253,28 +285,57 @@ class CNMPConfig(PreTrainedConfig):
             num_warmup_steps=0, num_decay_steps=10**9, peak_lr=self.optimizer_lr, decay_lr=self.scheduler_decay_lr
         )
 
+    def resolve_sm(self, ds_features: dict[str, dict] | None = None) -> SMSpec:
+        """Resolve ``sm`` / ``task_features`` against a dataset's features (names and shapes; training) or,
+        without one, against this config's own input/output features, and store the canonical form."""
+        spec = sm_spec.resolve(self.sm, self.task_features, self.state_tracks_action,
+                               ds_features if ds_features is not None else sm_spec.features_from_policy(self),
+                               self.use_task_params)
+        self.sm = tuple(d.key for d in spec.dims)
+        self.task_features = tuple(k for k, _ in spec.task_features)
+        if ds_features is not None or self.sm_names is None or len(self.sm_names) != spec.size:
+            self.sm_names = tuple(spec.names)
+        self._spec = spec
+        return spec
+
+    @property
+    def spec(self) -> SMSpec:
+        if getattr(self, "_spec", None) is None:
+            self.resolve_sm()
+        return self._spec
+
     def validate_features(self) -> None:
         if self.action_feature is None:
-            raise ValueError(f"CNMP needs the output feature {ACTION!r} (the SM trajectory); none was given")
+            raise ValueError(f"CNMP needs the output feature {ACTION!r} (the commanded SM); none was given")
         if len(self.action_feature.shape) != 1:
             raise ValueError(f"CNMP needs a flat {ACTION!r} vector, got shape {self.action_feature.shape}")
-        sm = self.sm_dim
-        state = self.robot_state_feature
-        if state is not None and tuple(state.shape) != (sm,):
-            raise ValueError(
-                f"{OBS_STATE!r} has shape {tuple(state.shape)} but the SM ({ACTION!r}) has {sm} dims: the "
-                "sensed state is fed back as SM, so they must match"
-            )
+        spec = self.spec
+        if spec.action_dim != self.action_feature.shape[0]:
+            raise ValueError(f"this CNMP's SM commands {spec.action_dim} {ACTION!r} dims but the env/dataset's "
+                             f"{ACTION!r} has {self.action_feature.shape[0]}")
+        for feature, pairs in spec.sensed_features.items():
+            ft = self.input_features.get(feature)
+            if ft is None:
+                raise ValueError(f"the SM senses {feature!r} but the inputs have no such feature; inputs: "
+                                 f"{sorted(self.input_features)}")
+            if max(k for _, k in pairs) >= ft.shape[0]:
+                raise ValueError(f"the SM reads dim {max(k for _, k in pairs)} of {feature!r}, which has shape {tuple(ft.shape)}")
         env = self.env_state_feature
-        if env is not None and env.shape[-1] % (2 + 2 * sm) != 0:
+        if self.condition_feature and env.shape[-1] % slot_size(self.sm_dim) != 0:
             raise ValueError(
-                f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {sm} (the CNMP "
-                "condition layout, see lerobot_cnmp.conditions)"
+                f"{OBS_ENV_STATE!r} has {env.shape[-1]} values, not a multiple of 2 + 2 x {self.sm_dim} (the CNMP "
+                f"condition layout of lerobot_cnmp.conditions); declare it as task parameters "
+                f"(--policy.task_features='[{OBS_ENV_STATE}]') if it holds task data"
             )
         for name in ("feedback_dims", "tracking_dims", "pd_dims"):
             dims = getattr(self, name)
-            if dims is not None and (not dims or min(dims) < 0 or max(dims) >= sm):
-                raise ValueError(f"{name} {dims} outside the SM dimensions 0..{sm - 1}")
+            if dims is not None and (not dims or min(dims) < 0 or max(dims) >= self.sm_dim):
+                raise ValueError(f"{name} {dims} outside the SM dimensions 0..{self.sm_dim - 1}")
+        for name in ("feedback_dims", "tracking_dims"):
+            dims = getattr(self, name)
+            if dims is not None and not set(dims) <= set(spec.sensed):
+                raise ValueError(f"{name} {dims} must be sensed SM dims {spec.sensed} (names: "
+                                 f"{[self.sm_names[i] for i in spec.sensed] if self.sm_names else '?'})")
         if self.use_images and not self.image_features:
             raise ValueError(
                 f"use_images=True but the dataset/env has no image feature; available inputs: {sorted(self.input_features)}"
@@ -287,28 +348,22 @@ class CNMPConfig(PreTrainedConfig):
                     f"image feature {key!r} has shape {shape}; the conv encoder needs [channels, height, width] "
                     f"with sides of at least {side} pixels ({len(self.image_channels)} 2x2 poolings)"
                 )
-        if self.use_task_params and TASK_PARAMS not in self.input_features:
-            raise ValueError(
-                f"use_task_params=True but the dataset/env has no {TASK_PARAMS!r} feature; "
-                f"available inputs: {sorted(self.input_features)}"
-            )
 
     # ---- Derived sizes -------------------------------------------------------------------------------
 
     @property
     def sm_dim(self) -> int:
-        return int(self.action_feature.shape[0])
+        return self.spec.size
 
     @property
     def task_dim(self) -> int:
-        if self.use_task_params is False or TASK_PARAMS not in (self.input_features or {}):
-            return 0
-        return int(self.input_features[TASK_PARAMS].shape[0])
+        return self.spec.task_dim
 
     @property
     def image_keys(self) -> list[str]:
-        """The image features the CNMP conditions on (sorted)."""
-        if self.use_images is False:
+        """The image features the CNMP conditions on (sorted). Each episode's *first* camera frame is the one
+        the conv encoder sees, in training and in execution."""
+        if self.use_images is not True:
             return []
         return sorted(self.image_features)
 
@@ -318,6 +373,14 @@ class CNMPConfig(PreTrainedConfig):
         return self.task_dim + len(self.image_keys) * self.image_embed_dim
 
     @property
-    def max_conditions(self) -> int:
+    def condition_feature(self) -> bool:
+        """Whether ``observation.environment_state`` carries condition slots (not γ, not SM)."""
         env = self.env_state_feature
-        return 0 if env is None else env.shape[-1] // (2 + 2 * self.sm_dim)
+        if env is None:
+            return False
+        used = {d.feature for d in self.spec.dims} | {k for k, _ in self.spec.task_features}
+        return OBS_ENV_STATE not in used
+
+    @property
+    def max_conditions(self) -> int:
+        return self.env_state_feature.shape[-1] // slot_size(self.sm_dim) if self.condition_feature else 0

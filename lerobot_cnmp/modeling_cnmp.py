@@ -22,14 +22,11 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import OBS_ENV_STATE
 
+from lerobot_cnmp.bank import EpisodeBank
 from lerobot_cnmp.conditions import decode_conditions
-from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
-
-PHASE_KEY = f"{ACTION}_phase"
-"""Optional batch key: the phase of every ``action`` window entry. The in-memory API provides it; for
-``lerobot-train`` batches it is derived from the dataset's episode table."""
+from lerobot_cnmp.configuration_cnmp import CNMPConfig
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -45,11 +42,6 @@ class Episodes:
     phase: Tensor  # [B, W] in [0, 1]
     valid: Tensor  # [B, W] bool
     task_params: Tensor | None = None  # [B, G]
-
-    def repeat(self, k: int) -> Episodes:
-        """Each episode k times (for k independent draws from it)."""
-        rep = lambda x: None if x is None else x.repeat_interleave(k, dim=0)  # noqa: E731
-        return Episodes(rep(self.values), rep(self.phase), rep(self.valid), rep(self.task_params))
 
 
 @dataclass
@@ -95,11 +87,14 @@ def sample_context_and_targets(
     partial_obs_prob: float = 0.0,
     generator: torch.Generator | None = None,
     context_in_targets: bool = False,
+    sensed_mask: Tensor | None = None,
+    sensed_obs_prob: float = 0.0,
 ) -> tuple[Context, Targets]:
     """Sample, per episode, n ~ U{1..min(n_max, #valid)} observations and m ~ U{1..min(m_max, #valid)}
     queries among its valid entries (plus the n observations themselves with ``context_in_targets``).
     With probability ``partial_obs_prob`` an observation constrains only a random non-empty subset of the
-    SM dimensions."""
+    SM dimensions; with probability ``sensed_obs_prob`` (of the rest) only the dims of ``sensed_mask`` [D]
+    (what execution feeds back: the sensed dims without the commanded ones)."""
     values, phase, valid = episodes.values, episodes.phase, episodes.valid
     B, W, D = values.shape  # noqa: N806
     n_valid = valid.sum(dim=1)
@@ -128,6 +123,12 @@ def sample_context_and_targets(
         bits = bits | F.one_hot(forced, D).bool()
         partial = torch.rand(c_values.shape[:2], generator=generator, device=values.device) < partial_obs_prob
         mask = torch.where(partial[..., None], bits.float(), mask)
+    else:
+        partial = torch.zeros(c_values.shape[:2], dtype=torch.bool, device=values.device)
+    if sensed_mask is not None and sensed_obs_prob > 0:
+        sensed = torch.rand(c_values.shape[:2], generator=generator, device=values.device) < sensed_obs_prob
+        sensed = sensed & ~partial
+        mask = torch.where(sensed[..., None], sensed_mask.to(mask)[None, None, :].expand_as(mask), mask)
 
     context = Context(c_phase, c_values, mask, c_valid, episodes.task_params)
     if context_in_targets:
@@ -341,33 +342,83 @@ def check_finite(name: str, x: Tensor) -> None:
         raise ValueError(f"{name} contains NaN or infinite values")
 
 
+class SMNormalizer(nn.Module):
+    """The SM's and γ's normalization statistics, as buffers saved with the weights (``model.safetensors``).
+
+    Every SM input -- demonstrations, sensed dims, condition values -- is scaled by the same per-dim
+    statistics, computed once from the training demonstrations (:meth:`EpisodeBank.sm_stats`). Held here and
+    not in LeRobot's normalizer steps, they survive ``lerobot-train --policy.path=...`` (fine-tuning), whose
+    processors are rebuilt with the new dataset's raw statistics: the checkpoint's buffers load over them."""
+
+    def __init__(self, sm_dim: int, task_dim: int):
+        super().__init__()
+        self.register_buffer("sm_mean", torch.zeros(sm_dim))
+        self.register_buffer("sm_std", torch.full((sm_dim,), float("nan")))
+        self.register_buffer("task_mean", torch.zeros(task_dim))
+        self.register_buffer("task_std", torch.full((task_dim,), float("nan")))
+
+    @property
+    def ready(self) -> bool:
+        return bool(torch.isfinite(self.sm_std).all()) and bool(torch.isfinite(self.task_std).all())
+
+    def set(self, sm: tuple[np.ndarray, np.ndarray], task: tuple[np.ndarray, np.ndarray] | None) -> None:
+        with torch.no_grad():
+            self.sm_mean.copy_(torch.as_tensor(sm[0]))
+            self.sm_std.copy_(torch.as_tensor(sm[1]))
+            if task is not None:
+                self.task_mean.copy_(torch.as_tensor(task[0]))
+                self.task_std.copy_(torch.as_tensor(task[1]))
+
+    def require(self) -> None:
+        if not self.ready:
+            raise RuntimeError(
+                "this CNMP has no normalization statistics: train it on a dataset (lerobot-train, CNMPModel.fit) "
+                "or load a checkpoint")
+
+    def sm(self, x: Tensor) -> Tensor:
+        return (x - self.sm_mean) / self.sm_std
+
+    def sm_inverse(self, x: Tensor, dims: list[int] | None = None) -> Tensor:
+        if dims is None:
+            return x * self.sm_std + self.sm_mean
+        return x * self.sm_std[dims] + self.sm_mean[dims]
+
+    def task(self, g: Tensor) -> Tensor:
+        return (g - self.task_mean) / self.task_std
+
+
 class CNMPPolicy(PreTrainedPolicy):
     """CNMP as a LeRobot policy.
 
-    Training (``forward``): each batch item is a window of one demonstration's ``action`` sequence
-    (``action_delta_indices``) with ``action_is_pad``; the phase of each entry is frame / (T - 1), from the
-    dataset's episode table (given by ``lerobot-train``) or from ``action_phase`` when the batch has it.
+    Training (``forward``): a batch item names an episode (``episode_index``, from the frame LeRobot's loader
+    drew); its observations and queries are drawn from that whole episode's SM, held in memory
+    (:class:`~lerobot_cnmp.bank.EpisodeBank`, read from the dataset when LeRobot builds the policy with
+    ``dataset_meta``, or given by the in-memory API). One sampler and one loss serve both paths.
 
     Execution (``select_action``, the paper's loop of Sec. III / Fig. 3): per env, the policy keeps a phase
-    τ (0 after ``reset``). Each step it
-    1. advances τ by Δ unless the tracking error |sensed SM - SM commanded last step| exceeds
+    τ (0 after ``reset``) that advances by Δ = 1 / (control_fps x demo_duration_s) per call. Each step it
+    1. holds τ while the tracking error (sensed SM vs the SM expected now, in normalized units) exceeds
        ``phase_stop_threshold`` (with ``online_feedback``; open loop always advances);
-    2. conditions on the episode's conditions (``observation.environment_state``), on the state sensed at the
-       first step (t = 0, ``condition_on_start``) and, with ``online_feedback``, on the current sensed state;
-    3. predicts SM(τ) (μ, σ) and sends the PD command s + kp·e + kd·(e - e_prev), e = μ - s (kp may be scaled
-       down where σ is large). The sensed state at step k is what step k - 1 commanded, so it enters the
-       context at phase τ - Δ.
+    2. conditions on the episode's conditions (``observation.environment_state`` slots), on the sensed dims at
+       the first step (t = 0, ``condition_on_start``) and, with ``online_feedback``, on the current sensed
+       dims: at τ in the joint layout (frame k's state and action share a phase), at τ - Δ in the tied layout
+       (the state step k - 1's command reached);
+    3. outputs the predicted ``action`` dims at τ (joint layout), or the PD command s + kp·e + kd·(e - e_prev),
+       e = μ(τ) - s (tied layout), in the dataset's units.
+    γ and the conv encoder's image are read at the first step of an episode, as training reads them at the
+    episode's first frame.
     """
 
     config_class = CNMPConfig
     name = "cnmp"
 
-    def __init__(self, config: CNMPConfig, dataset_meta=None, **kwargs):
+    def __init__(self, config: CNMPConfig, dataset_meta=None, dataset_stats=None, **kwargs):
         if not isinstance(config, CNMPConfig):
             raise TypeError(
                 f"CNMPPolicy needs a CNMPConfig; got {type(config).__name__} (a checkpoint of another policy type?)"
             )
         super().__init__(config)
+        config.resolve_sm(dataset_meta.features if dataset_meta is not None else None)
         config.validate_features()
         self.config = config
         # One conv encoder per image feature; its embedding joins γ as the episode-level input of E and Q.
@@ -384,14 +435,16 @@ class CNMPPolicy(PreTrainedPolicy):
             min_std=config.min_std,
             phase_frequencies=config.phase_frequencies,
         )
-        self.register_buffer(
-            "window_offsets", torch.tensor(config.action_delta_indices, dtype=torch.long), persistent=False
-        )
-        # Episode table of the training dataset (absolute index of frame 0, length); not saved.
-        self.register_buffer("episode_from", torch.zeros(0, dtype=torch.long), persistent=False)
-        self.register_buffer("episode_length", torch.zeros(0, dtype=torch.long), persistent=False)
+        self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
+        spec = config.spec
+        sensed_only = torch.zeros(config.sm_dim)
+        if not spec.tied:
+            sensed_only[spec.sensed] = 1.0
+        self.register_buffer("sensed_only_mask", sensed_only, persistent=False)
+        self.bank: EpisodeBank | None = None
+        self._first_frames: FirstFrames | None = None
         if dataset_meta is not None:
-            self.set_episode_table(dataset_meta)
+            self.set_dataset(dataset_meta)
         self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see executor()
         self._numpy_key: tuple | None = None
         self.reset()
@@ -405,7 +458,7 @@ class CNMPPolicy(PreTrainedPolicy):
         except RuntimeError as e:
             raise ValueError(
                 f"the weights in {model_file} do not fit this CNMP configuration (layer sizes, SM or γ dims "
-                f"differ): {e}"
+                f"differ, or a checkpoint from before the SM normalizer moved into the weights: retrain it): {e}"
             ) from e
 
     # ---- sharing --------------------------------------------------------------------------------------
@@ -454,7 +507,7 @@ the sensed state, PD tracking and phase stopping.
 ## Training
 
 - Data: {trained}{steps}.
-- SM (`action`): {c.sm_dim} dims; inputs: {inputs}; task parameters γ: {c.task_dim} dims.
+- SM: {c.sm_dim} dims ({', '.join(c.sm_names or [])}); inputs: {inputs}; task parameters γ: {c.task_dim} dims.
 - Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
   m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.{images}
 - Every setting is in `config.json`; the normalization statistics are in the processor files.
@@ -479,69 +532,60 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the check
 
     # ---- training -------------------------------------------------------------------------------------
 
-    def set_episode_table(self, dataset_meta) -> None:
-        """Read each episode's first absolute index and length from LeRobot dataset metadata."""
-        episodes = dataset_meta.episodes
-        ep_index = np.asarray(episodes["episode_index"], dtype=np.int64)
-        size = int(ep_index.max()) + 1 if len(ep_index) else 0
-        frm = np.zeros(size, dtype=np.int64)
-        length = np.zeros(size, dtype=np.int64)
-        frm[ep_index] = np.asarray(episodes["dataset_from_index"], dtype=np.int64)
-        length[ep_index] = np.asarray(episodes["length"], dtype=np.int64)
-        longest = int(length.max()) if size else 0
-        if longest > self.config.max_episode_length:
-            raise ValueError(
-                f"the dataset has an episode of {longest} frames but max_episode_length is "
-                f"{self.config.max_episode_length}: set --policy.max_episode_length={longest} or more"
-            )
-        if size and int(length[ep_index].min()) < 2:
-            raise ValueError("every demonstration needs at least 2 frames to define a phase")
-        self.episode_from = torch.from_numpy(frm).to(self.episode_from.device)
-        self.episode_length = torch.from_numpy(length).to(self.episode_length.device)
-        if self.config.demo_length is None and size:
-            self.config.demo_length = int(np.median(length[ep_index]))
+    def set_dataset(self, dataset_meta) -> None:
+        """Read the training demonstrations' SM and γ from a LeRobot dataset (its metadata's local root) and,
+        for a new policy, the normalization statistics, the demos' duration and fps."""
+        bank = EpisodeBank.from_dataset(dataset_meta.root, self.config.spec)
+        self.set_bank(bank, fps=float(dataset_meta.fps))
+        if self.config.image_keys:
+            self._first_frames = FirstFrames(dataset_meta, self.config.image_keys)
 
-    def episodes_from_batch(self, batch: dict[str, Tensor]) -> Episodes:
-        """A ``lerobot-train`` batch (or an in-memory one with ``action_phase``) as :class:`Episodes`."""
-        if ACTION not in batch:
-            raise KeyError(f"CNMP training batches need {ACTION!r}; got keys {sorted(batch)}")
-        values = batch[ACTION]
-        if values.ndim != 3 or values.shape[-1] != self.config.sm_dim:
-            raise ValueError(
-                f"{ACTION!r} must be a window [batch, frames, {self.config.sm_dim}], got {tuple(values.shape)}; "
-                "train with the config's action_delta_indices"
-            )
-        pad = batch.get(f"{ACTION}_is_pad")
-        valid = torch.ones(values.shape[:2], dtype=torch.bool, device=values.device) if pad is None else ~pad
-        if PHASE_KEY in batch:
-            phase = batch[PHASE_KEY].to(values.dtype)
-        else:
-            if self.episode_length.numel() == 0:
-                raise RuntimeError(
-                    "CNMP needs the dataset's episode table to know each frame's phase: build the policy with "
-                    "`dataset_meta=` (lerobot-train does) or put 'action_phase' in the batch"
-                )
-            if values.shape[1] != self.window_offsets.numel():
-                raise ValueError(
-                    f"{ACTION!r} window has {values.shape[1]} frames but the config's action_delta_indices has "
-                    f"{self.window_offsets.numel()}"
-                )
-            ep = batch["episode_index"].long().reshape(-1)
-            frame = batch["index"].long().reshape(-1) - self.episode_from[ep]
-            length = self.episode_length[ep]
-            frames = frame[:, None] + self.window_offsets[None, :]
-            phase = frames.to(values.dtype) / (length[:, None] - 1).to(values.dtype)
-        valid = valid & (phase >= 0) & (phase <= 1)
-        check_finite(ACTION, torch.where(valid[..., None], values, torch.zeros_like(values)))
-        return Episodes(values, phase.clamp(0, 1), valid, self._episode_inputs(batch))
+    def set_bank(self, bank: EpisodeBank, fps: float | None) -> None:
+        c = self.config
+        if bank.values.shape[1] != c.sm_dim:
+            raise ValueError(f"the demonstrations have {bank.values.shape[1]} SM dims, the policy {c.sm_dim}")
+        self.bank = bank
+        if not self.normalizer.ready:  # a checkpoint's statistics (fine-tuning) load over these afterwards
+            self.normalizer.set(bank.sm_stats(), bank.task_stats())
+        if c.demo_duration_s is None:
+            c.demo_duration_s = bank.median_duration_s()
+        if c.dataset_fps is None:
+            c.dataset_fps = fps if fps is not None else 1.0
+
+    def episodes_for(self, episode_index: Tensor, generator: torch.Generator | None = None) -> Episodes:
+        """Each named episode's draw: n_max + m_max frames uniform over the whole episode, normalized."""
+        if self.bank is None:
+            raise RuntimeError(
+                "CNMP trains on demonstrations it holds in memory: build the policy with `dataset_meta=` "
+                "(lerobot-train does) or train with lerobot_cnmp.api.CNMPModel.fit")
+        self.normalizer.require()
+        c = self.config
+        dev = self.normalizer.sm_std.device
+        values, phase, gamma = self.bank.draw(episode_index, c.n_max_context + c.m_max_targets, generator)
+        values = self.normalizer.sm(values.to(dev))
+        parts = []
+        if gamma is not None and c.task_dim:
+            parts.append(self.normalizer.task(gamma.to(dev)))
+        if c.image_keys:
+            if self._first_frames is None:
+                raise RuntimeError("this CNMP conditions on images: build it with `dataset_meta=` to train")
+            images = self._first_frames(episode_index)
+            parts += [self.image_encoders[k.replace(".", "_")](images[k].to(dev)) for k in c.image_keys]
+        inputs = None if not parts else (parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1))
+        valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
+        return Episodes(values, phase.to(dev), valid, inputs)
 
     def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         c = self.config
-        episodes = self.episodes_from_batch(batch)
+        if "episode_index" not in batch:
+            raise KeyError(f"CNMP training batches need 'episode_index' (LeRobot's loader gives it); got {sorted(batch)}")
+        ep = batch["episode_index"].reshape(-1)
         if c.draws_per_sample > 1:
-            episodes = episodes.repeat(c.draws_per_sample)
+            ep = ep.repeat_interleave(c.draws_per_sample)
+        episodes = self.episodes_for(ep, generator)
         context, targets = sample_context_and_targets(
-            episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets
+            episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
+            self.sensed_only_mask, c.sensed_obs_prob,
         )
         return self.model.training_loss(context, targets)
 
@@ -553,20 +597,25 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the check
     def reset(self) -> None:
         """Restart every env's execution state (called by lerobot-eval at each episode start)."""
         self._phase: Tensor | None = None  # τ per env
-        self._start: Tensor | None = None  # state sensed at the first step (condition_on_start)
-        self._target: Tensor | None = None  # SM commanded at the previous step (normalized)
+        self._start: Tensor | None = None  # sensed SM at the first step (condition_on_start), normalized
+        self._target: Tensor | None = None  # tied: SM commanded at the previous step (normalized)
+        self._expected: Tensor | None = None  # joint: sensed SM predicted for this step (normalized)
         self._error: Tensor | None = None  # previous PD error e, for the D term
+        self._inputs: Tensor | None = None  # γ and image embeddings read at the first step
+        self._has_inputs = False
 
     @property
     def phase_step(self) -> float:
-        if self.config.phase_step is not None:
-            return self.config.phase_step
-        if self.config.demo_length is None:
+        c = self.config
+        if c.phase_step is not None:
+            return c.phase_step
+        if c.demo_duration_s is None:
             raise RuntimeError(
-                "demo_length is unknown: train on a dataset (it is set from the episode lengths) or set "
-                "--policy.demo_length or --policy.phase_step"
+                "demo_duration_s is unknown: train on a dataset (it is set from the episodes' timestamps) or set "
+                "--policy.demo_duration_s or --policy.phase_step"
             )
-        return 1.0 / (self.config.demo_length - 1)
+        fps = c.control_fps or c.dataset_fps or 1.0
+        return min(1.0, 1.0 / (fps * c.demo_duration_s))
 
     @staticmethod
     def _dims_mask(like: Tensor, dims) -> Tensor:
@@ -577,16 +626,131 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the check
         return mask
 
     def _feedback_mask(self, like: Tensor) -> Tensor:
-        return self._dims_mask(like, self.config.feedback_dims)
+        """The fed-back dims: ``feedback_dims``, else every sensed dim."""
+        c = self.config
+        dims = c.feedback_dims if c.feedback_dims is not None else (None if c.spec.tied else c.spec.sensed)
+        return self._dims_mask(like, dims)
 
-    def tracking_error(self, state: Tensor) -> Tensor:
-        """Per env, max over the tracked dims (``tracking_dims``, else the fed-back ones) of
-        |sensed SM - SM commanded at the previous step|."""
-        if self._target is None:
-            return torch.zeros(state.shape[0], device=state.device, dtype=state.dtype)
+    def sensed_sm(self, batch: dict[str, Tensor]) -> Tensor:
+        """The live observation's sensed dims as a normalized SM vector [B, D] (other dims 0)."""
+        spec = self.config.spec
+        rows = None
+        out = None
+        for feature, pairs in spec.sensed_features.items():
+            if feature not in batch:
+                raise KeyError(f"the CNMP feeds back {feature!r}: the observation needs it; it has {sorted(batch)}")
+            x = batch[feature]
+            x = x.reshape(x.shape[0], -1) if x.ndim != 2 else x
+            if x.shape[-1] <= max(k for _, k in pairs):
+                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM reads dim {max(k for _, k in pairs)} "
+                                 f"of it (the checkpoint's SM does not match this env/robot)")
+            if spec.tied and x.shape[-1] != spec.size:
+                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
+            if out is None:
+                rows = x.shape[0]
+                out = torch.zeros(rows, spec.size, dtype=torch.float32, device=x.device)
+            idx = torch.tensor([i for i, _ in pairs], device=x.device)
+            src = torch.tensor([k for _, k in pairs], device=x.device)
+            vals = x[:, src].float()
+            check_finite(feature, vals)
+            out[:, idx] = vals
+        if out is None:
+            return None
+        full = self.normalizer.sm(out)
+        mask = torch.zeros(spec.size, device=out.device)
+        mask[spec.sensed] = 1.0
+        return full * mask
+
+    def _episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """The episode-level input of E and Q read at the first step of the episode: γ and the embedding of
+        each image feature, [B, episode_dim]; None when there is neither."""
+        c = self.config
+        parts = []
+        for key, size in c.spec.task_features:
+            if key not in batch:
+                raise KeyError(f"this CNMP is conditioned on task parameters: the observation needs {key!r}; it has "
+                               f"{sorted(batch)}")
+            g = batch[key]
+            g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]
+            if g.shape[-1] != size:
+                raise ValueError(f"task feature {key!r} has {g.shape[-1]} values, the CNMP was trained with {size}")
+            check_finite(key, g)
+            parts.append(g.float())
+        if parts:
+            parts = [self.normalizer.task(torch.cat(parts, dim=-1))]
+        for key in c.image_keys:
+            if key not in batch:
+                raise KeyError(f"this CNMP is conditioned on the image {key!r}; the observation has {sorted(batch)}")
+            img = batch[key]
+            img = img[:, 0] if img.ndim == 5 else img
+            check_finite(key, img)
+            parts.append(self.image_encoders[key.replace(".", "_")](img))
+        if not parts:
+            return None
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+
+    def _condition_slots(self, batch: dict[str, Tensor]):
+        d = self.config.sm_dim
+        env = batch[OBS_ENV_STATE]
+        present, c_phase, c_values, c_mask = decode_conditions(env, d)
+        given = present > 0.5
+        check_finite(OBS_ENV_STATE + " (flags, phases, masks)", torch.stack([present, c_phase], -1))
+        used = given[..., None] & (c_mask > 0.5)
+        if bool((~torch.isfinite(c_values) & used).any()):
+            raise ValueError(f"a condition in {OBS_ENV_STATE} has NaN or infinite values in a constrained dim")
+        if bool(((c_phase < 0) | (c_phase > 1))[given].any()):
+            raise ValueError("a condition in environment_state has a phase outside [0, 1]")
+        values = torch.where(used, self.normalizer.sm(torch.nan_to_num(c_values.float())), torch.zeros_like(c_values))
+        return c_phase, values, c_mask.float(), given & (c_mask.sum(-1) > 0)
+
+    def execution_context(self, batch: dict[str, Tensor], phase: Tensor, sensed: Tensor | None = None) -> Context:
+        """Conditions from ``environment_state``, the sensed dims at the first step at t = 0 and (with
+        ``online_feedback``) the current sensed dims (at τ, or τ - Δ in the tied layout)."""
+        c = self.config
+        self.normalizer.require()
+        phases, values, masks, valids = [], [], [], []
+        if c.max_conditions and OBS_ENV_STATE in batch:
+            for lst, x in zip((phases, values, masks, valids), self._condition_slots(batch), strict=True):
+                lst.append(x)
+        need_state = (c.online_feedback or c.condition_on_start) and bool(c.spec.sensed)
+        if need_state and sensed is None:
+            sensed = self.sensed_sm(batch)
+        start_mask = self._dims_mask(sensed[0], None if c.spec.tied else c.spec.sensed) if need_state else None
+        if c.condition_on_start and need_state:
+            if self._start is None or self._start.shape[0] != sensed.shape[0]:
+                self._start = sensed.clone()
+            phases.append(torch.zeros_like(phase)[:, None])
+            values.append(self._start[:, None, :])
+            masks.append(start_mask.expand_as(sensed)[:, None, :])
+            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+        if c.online_feedback and need_state:
+            at = (phase - self.phase_step).clamp(min=0.0) if c.spec.tied else phase
+            phases.append(at[:, None])
+            values.append(sensed[:, None, :])
+            masks.append(self._feedback_mask(sensed)[:, None, :])
+            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+        if not phases:
+            raise ValueError(
+                "nothing to condition on: the observation has no environment_state conditions and both "
+                "online_feedback and condition_on_start are off"
+            )
+        valid = torch.cat(valids, dim=1)
+        if not bool(valid.any(dim=1).all()):
+            raise ValueError("an env in the batch has no condition to condition on (empty context)")
+        if not self._has_inputs:
+            self._inputs, self._has_inputs = self._episode_inputs(batch), True
+        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._inputs)
+
+    def tracking_error(self, sensed: Tensor) -> Tensor:
+        """Per env, max over the tracked dims (``tracking_dims``, else the fed-back ones) of |sensed SM - SM
+        expected now| (tied: the SM commanded at the previous step), in normalized units."""
+        ref = self._target if self.config.spec.tied else self._expected
+        if ref is None:
+            return torch.zeros(sensed.shape[0], device=sensed.device, dtype=sensed.dtype)
         c = self.config
         dims = c.tracking_dims if c.tracking_dims is not None else c.feedback_dims
-        return ((state - self._target).abs() * self._dims_mask(state, dims)).amax(dim=-1)
+        mask = self._dims_mask(sensed, dims) if dims is not None else self._feedback_mask(sensed)
+        return ((sensed - ref).abs() * mask).amax(dim=-1)
 
     def pd_gains(self, std: Tensor) -> tuple[Tensor, Tensor]:
         """(kp, kd) per env and SM dim: kp constant or scaled by sigma_ref / σ within [kp_min, kp_max]; outside
@@ -600,79 +764,15 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the check
             kp, kd = on * kp + (1 - on), on * kd
         return kp, kd
 
-    def _episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """The episode-level input of E and Q: γ (``observation.task_params``) and the embedding of each image
-        feature, [B, episode_dim]; None when there is neither."""
-        parts = []
-        if self.config.task_dim:
-            if TASK_PARAMS not in batch:
-                raise KeyError(f"this CNMP is conditioned on task parameters: the batch needs {TASK_PARAMS!r}")
-            g = batch[TASK_PARAMS]
-            g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]  # a window of γ: all frames are equal
-            check_finite(TASK_PARAMS, g)
-            parts.append(g)
-        for key in self.config.image_keys:
-            if key not in batch:
-                raise KeyError(f"this CNMP is conditioned on the image {key!r}; the batch has {sorted(batch)}")
-            img = batch[key]
-            img = img[:, 0] if img.ndim == 5 else img  # a window of frames: the episode's image is constant
-            check_finite(key, img)
-            parts.append(self.image_encoders[key.replace(".", "_")](img))
-        if not parts:
-            return None
-        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-
-    def execution_context(self, batch: dict[str, Tensor], phase: Tensor) -> Context:
-        """Conditions from ``environment_state``, the start state at t = 0 and (with ``online_feedback``) the
-        current sensed state at τ - Δ."""
-        d = self.config.sm_dim
-        phases, values, masks, valids = [], [], [], []
-        if OBS_ENV_STATE in batch and self.config.max_conditions:
-            env = batch[OBS_ENV_STATE]
-            check_finite(OBS_ENV_STATE, env)
-            present, c_phase, c_values, c_mask = decode_conditions(env, d)
-            given = present > 0.5
-            if bool(((c_phase < 0) | (c_phase > 1))[given].any()):
-                raise ValueError("a condition in environment_state has a phase outside [0, 1]")
-            phases.append(c_phase)
-            values.append(c_values)
-            masks.append(c_mask)
-            valids.append(given & (c_mask.sum(-1) > 0))
-        if self.config.online_feedback or self.config.condition_on_start:
-            if OBS_STATE not in batch:
-                raise KeyError(f"online_feedback and condition_on_start need {OBS_STATE!r} in the observation")
-            state = batch[OBS_STATE]
-            if state.shape[-1] != d:
-                raise ValueError(f"{OBS_STATE!r} has {state.shape[-1]} dims, the SM has {d}")
-            check_finite(OBS_STATE, state)
-        if self.config.condition_on_start:
-            if self._start is None or self._start.shape[0] != state.shape[0]:
-                self._start = state.clone()
-            phases.append(torch.zeros_like(phase)[:, None])
-            values.append(self._start[:, None, :])
-            masks.append(torch.ones_like(state)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
-        if self.config.online_feedback:
-            phases.append((phase - self.phase_step).clamp(min=0.0)[:, None])
-            values.append(state[:, None, :])
-            masks.append(self._feedback_mask(state)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
-        if not phases:
-            raise ValueError(
-                "nothing to condition on: the observation has no environment_state conditions and both "
-                "online_feedback and condition_on_start are off"
-            )
-        valid = torch.cat(valids, dim=1)
-        if not bool(valid.any(dim=1).all()):
-            raise ValueError("an env in the batch has no condition to condition on (empty context)")
-        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._episode_inputs(batch))
-
-    def _ensure_state(self, batch: dict[str, Tensor]) -> Tensor:
-        ref = batch[OBS_STATE] if OBS_STATE in batch else batch[OBS_ENV_STATE]
-        if self._phase is None or self._phase.shape[0] != ref.shape[0]:
+    def _ensure_state(self, batch: dict[str, Tensor]) -> int:
+        ref = next((v for k, v in batch.items() if isinstance(v, Tensor) and k.startswith("observation.")), None)
+        if ref is None:
+            raise KeyError(f"the observation has no 'observation.*' tensor; it has {sorted(batch)}")
+        n = ref.shape[0]
+        if self._phase is None or self._phase.shape[0] != n:
             self.reset()
-            self._phase = torch.zeros(ref.shape[0], device=ref.device, dtype=ref.dtype)
-        return ref
+            self._phase = torch.zeros(n, device=ref.device, dtype=torch.float32)
+        return n
 
     def executor(self):
         """The network that execution runs: the numpy copy on CPU (``numpy_execution``, rebuilt whenever a
@@ -684,35 +784,76 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the check
             self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
         return self._numpy_model
 
-    def _predict(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """(μ, σ) of the SM at each env's current phase, [B, 1, D] each."""
-        return self.executor()(self.execution_context(batch, self._phase), self._phase[:, None])
+    def _predict(self, batch: dict[str, Tensor], sensed: Tensor | None, queries: Tensor) -> tuple[Tensor, Tensor]:
+        """(μ, σ) of the SM at ``queries`` [B, M] (normalized units), [B, M, D] each."""
+        return self.executor()(self.execution_context(batch, self._phase, sensed), queries)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """The SM predicted at the current phase, [B, 1, D] (no phase update, no PD)."""
+        """The action predicted at the current phase, [B, 1, A] in the dataset's units (no phase update, no PD)."""
         self._ensure_state(batch)
-        return self._predict(batch)[0]
+        sensed = self.sensed_sm(batch) if self.config.spec.sensed else None
+        mean, _ = self._predict(batch, sensed, self._phase[:, None])
+        return self.normalizer.sm_inverse(mean[..., self.config.spec.commanded], self.config.spec.commanded)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """One step of the execution loop (see the class docstring), for every env of the batch."""
         c = self.config
+        spec = c.spec
         self._ensure_state(batch)  # resets the state of a new batch of envs
-        state = batch.get(OBS_STATE)
-        if self._target is not None:  # not the first step: the phase may advance
+        self.normalizer.require()
+        sensed = self.sensed_sm(batch) if spec.sensed else None
+        if self._target is not None or self._expected is not None:  # not the first step: the phase may advance
             advance = torch.ones_like(self._phase, dtype=torch.bool)
-            if c.online_feedback and c.phase_stop_threshold is not None and state is not None:
-                advance = self.tracking_error(state) <= c.phase_stop_threshold
+            if c.online_feedback and c.phase_stop_threshold is not None and sensed is not None:
+                advance = self.tracking_error(sensed) <= c.phase_stop_threshold
             self._phase = torch.where(advance, (self._phase + self.phase_step).clamp(max=1.0), self._phase)
-        mean, std = self._predict(batch)
-        target, std = mean[:, 0], std[:, 0]
-        action = target
-        if c.online_feedback and state is not None:
-            error = target - state
-            previous = self._error if self._error is not None else error
-            kp, kd = self.pd_gains(std)
-            action = state + kp * error + kd * (error - previous)
-            self._error = error
-        self._target = target
-        return action
+        if spec.tied:
+            mean, std = self._predict(batch, sensed, self._phase[:, None])
+            target, std = mean[:, 0], std[:, 0]
+            action = target
+            if c.online_feedback and sensed is not None:
+                error = target - sensed
+                previous = self._error if self._error is not None else error
+                kp, kd = self.pd_gains(std)
+                action = sensed + kp * error + kd * (error - previous)
+                self._error = error
+            self._target = target
+            return self.normalizer.sm_inverse(action)
+        nxt = (self._phase + self.phase_step).clamp(max=1.0)
+        mean, _ = self._predict(batch, sensed, torch.stack([self._phase, nxt], dim=1))
+        self._expected = mean[:, 1]
+        return self.normalizer.sm_inverse(mean[:, 0, spec.commanded], spec.commanded)
+
+
+class FirstFrames:
+    """Each training episode's first camera frame per image feature, read once from the dataset (LeRobot's own
+    decoder) and kept as uint8 on the CPU: the image the conv encoder sees for that episode."""
+
+    def __init__(self, dataset_meta, keys: list[str]):
+        self.meta, self.keys = dataset_meta, list(keys)
+        self.cache: dict[int, dict[str, Tensor]] = {}
+        self._dataset = None
+        eps = dataset_meta.episodes
+        self.first = dict(zip(np.asarray(eps["episode_index"]).tolist(), np.asarray(eps["dataset_from_index"]).tolist(),
+                              strict=True))
+
+    def _load(self, ep: int) -> dict[str, Tensor]:
+        if self._dataset is None:
+            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+            self._dataset = LeRobotDataset(self.meta.repo_id, root=self.meta.root)
+        mapping = self._dataset.absolute_to_relative_idx
+        absolute = int(self.first[ep])
+        item = self._dataset[mapping[absolute] if mapping else absolute]
+        return {k: (item[k].clamp(0, 1) * 255).round().to(torch.uint8) for k in self.keys}
+
+    def __call__(self, episode_index: Tensor) -> dict[str, Tensor]:
+        eps = episode_index.reshape(-1).tolist()
+        for e in set(eps):
+            if e not in self.cache:
+                if e not in self.first:
+                    raise KeyError(f"episode {e} is not in the dataset")
+                self.cache[e] = self._load(e)
+        return {k: torch.stack([self.cache[e][k] for e in eps]).float() / 255.0 for k in self.keys}

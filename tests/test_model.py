@@ -257,19 +257,12 @@ def test_not_a_checkpoint(tmp_path):
 
 @pytest.mark.parametrize(
     "field, value",
-    [("min_std", 0.0), ("n_max_context", 0), ("partial_obs_prob", 1.5), ("window_size", 1), ("demo_length", 1),
-     ("draws_per_sample", 0), ("phase_frequencies", -1)],
+    [("min_std", 0.0), ("n_max_context", 0), ("partial_obs_prob", 1.5), ("demo_duration_s", 0.0),
+     ("control_fps", -1.0), ("sensed_obs_prob", 2.0), ("draws_per_sample", 0), ("phase_frequencies", -1)],
 )
 def test_bad_config_values(field, value):
     with pytest.raises(ValueError, match=field):
         CNMPConfig(**{field: value})
-
-
-def test_window_spans_the_episode():
-    cfg = CNMPConfig(max_episode_length=200, window_size=32)
-    idx = cfg.action_delta_indices
-    assert idx[0] == -199 and idx[-1] == 199
-    assert len(idx) == 32
 
 
 def test_context_in_targets_puts_observations_among_queries():
@@ -281,13 +274,6 @@ def test_context_in_targets_puts_observations_among_queries():
     assert tgt.phase.shape[1] == n + 5
     torch.testing.assert_close(tgt.values[:, :n], ctx.values)
     assert torch.equal(tgt.valid[:, :n], ctx.valid)
-
-
-def test_draws_per_sample_multiplies_the_draws():
-    ep = Episodes(torch.randn(3, 10, 2), torch.rand(3, 10), torch.ones(3, 10, dtype=torch.bool), torch.randn(3, 1))
-    rep = ep.repeat(4)
-    assert rep.values.shape == (12, 10, 2) and rep.task_params.shape == (12, 1)
-    torch.testing.assert_close(rep.values[4:8], ep.values[1:2].expand(4, -1, -1))
 
 
 def test_phase_fourier_features():

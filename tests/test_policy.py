@@ -14,11 +14,10 @@ import torch
 
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
-from lerobot.datasets.factory import resolve_delta_timestamps
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_cnmp.api import load_pretrained, normalizer_stats
+from lerobot_cnmp.api import load_pretrained, sm_stats
 from lerobot_cnmp.conditions import Condition, encode_conditions
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.modeling_cnmp import CNMPPolicy
@@ -36,14 +35,16 @@ def meta():
 
 
 def small_config(**kw) -> CNMPConfig:
-    return CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), window_size=12, **kw)
+    kw.setdefault("state_tracks_action", True)
+    return CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), **kw)
 
 
 @pytest.fixture(scope="module")
 def policy_and_data(meta):
     cfg = small_config()
     policy = make_policy(cfg, ds_meta=meta)
-    ds = LeRobotDataset(REPO_ID, root=DATASET, delta_timestamps=resolve_delta_timestamps(cfg, meta))
+    ds = LeRobotDataset(REPO_ID, root=DATASET, delta_timestamps=None)
+    assert cfg.action_delta_indices is None  # one frame per sample: its episode id
     return policy, ds
 
 
@@ -55,18 +56,22 @@ def test_dataset_has_declared_features(meta):
     assert (DATASET / "README.md").is_file()
 
 
-def test_stock_batch_phases_match_frames(policy_and_data):
-    """Each window entry's phase is frame / (T - 1), and pads are exactly the frames outside the episode."""
+def test_stock_batch_draws_from_the_whole_episode(policy_and_data):
+    """A lerobot-train batch names episodes; each item's observations and queries come from its whole episode."""
     policy, ds = policy_and_data
     items = [ds[i] for i in (0, 57, 199, 200, 12799)]
     batch = torch.utils.data.default_collate(items)
-    episodes = policy.episodes_from_batch(batch)
-    offsets = torch.tensor(policy.config.action_delta_indices)
-    for b, item in enumerate(items):
-        frames = item["frame_index"] + offsets
-        inside = (frames >= 0) & (frames <= 199)
-        assert torch.equal(episodes.valid[b], inside)
-        torch.testing.assert_close(episodes.phase[b][inside], frames[inside].float() / 199)
+    gen = torch.Generator().manual_seed(0)
+    episodes = policy.episodes_for(batch["episode_index"].repeat_interleave(40), gen)
+    phases = episodes.phase.reshape(5, -1)
+    assert float(phases.min()) < 0.05 and float(phases.max()) > 0.95  # not a window around the anchor
+    bank = policy.bank
+    rows = bank.rows(batch["episode_index"])
+    raw = policy.normalizer.sm_inverse(episodes.values.reshape(5, -1, 2))
+    for b, row in enumerate(rows.tolist()):  # every drawn point is a frame of that item's episode
+        frames = bank.values[int(bank.starts[row]): int(bank.starts[row]) + 200]
+        d = (raw[b][:, None, :] - frames[None]).abs().amax(-1).amin(-1)
+        assert float(d.max()) < 1e-4
     loss, info = policy.forward(batch)
     assert loss.ndim == 0 and torch.isfinite(loss) and {"nll", "mae", "std"} <= set(info)
     loss.backward()
@@ -75,22 +80,13 @@ def test_stock_batch_phases_match_frames(policy_and_data):
 def test_forward_rejects_bad_batches(policy_and_data):
     policy, ds = policy_and_data
     batch = torch.utils.data.default_collate([ds[3], ds[4]])
-    with pytest.raises(ValueError, match="window"):
-        policy.forward({**batch, ACTION: batch[ACTION][:, 0]})
-    bad = batch[ACTION].clone()
-    bad[~batch[f"{ACTION}_is_pad"]] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
-        policy.forward({**batch, ACTION: bad})
-    with pytest.raises(KeyError, match="action"):
-        policy.forward({k: v for k, v in batch.items() if k != ACTION})
-    orphan = CNMPPolicy(policy.config)  # no dataset table and no action_phase
-    with pytest.raises(RuntimeError, match="episode table"):
+    with pytest.raises(KeyError, match="episode_index"):
+        policy.forward({k: v for k, v in batch.items() if k != "episode_index"})
+    with pytest.raises(KeyError, match="not in the CNMP's demonstrations"):
+        policy.forward({**batch, "episode_index": torch.tensor([3, 999])})
+    orphan = CNMPPolicy(policy.config)  # no demonstrations in memory
+    with pytest.raises(RuntimeError, match="in memory"):
         orphan.forward(batch)
-
-
-def test_episode_longer_than_window_is_rejected(meta):
-    with pytest.raises(ValueError, match="max_episode_length"):
-        make_policy(small_config(max_episode_length=100), ds_meta=meta)
 
 
 def test_dataset_missing_task_params_is_rejected(meta):
@@ -98,23 +94,25 @@ def test_dataset_missing_task_params_is_rejected(meta):
         make_policy(small_config(use_task_params=True), ds_meta=meta)
 
 
-def test_processor_normalizes_sm_inputs_with_action_stats(meta):
-    cfg = small_config()
-    make_policy(cfg, ds_meta=meta)  # sets features
-    pre, post = make_cnmp_pre_post_processors(cfg, meta.stats)
-    mean, std = (np.asarray(meta.stats[ACTION][k], np.float32) for k in ("mean", "std"))
-    cond = encode_conditions([Condition(0.5, (0.5, 0.4)), Condition(1.0, (1.0, 0.1), dims=(1,))], 2, 4)
+def test_sm_inputs_share_the_sm_statistics(policy_and_data):
+    """Sensed state and condition values are normalized by the policy with the demos' SM statistics (saved with
+    its weights); LeRobot's processors pass them through and the action comes back in the data's units."""
+    policy, _ = policy_and_data
+    mean, std = policy.bank.sm_stats()
+    np.testing.assert_allclose(policy.normalizer.sm_mean.numpy(), mean)
+    pre, post = make_cnmp_pre_post_processors(policy.config)
+    cond = encode_conditions([Condition(0.5, (0.5, 0.4)), Condition(1.0, (np.nan, 0.1), dims=(1,))], 2, 4)
     obs = {OBS_STATE: torch.tensor([0.2, -0.1]), OBS_ENV_STATE: torch.from_numpy(cond)}
     out = pre(obs)
-    torch.testing.assert_close(out[OBS_STATE][0], torch.from_numpy((np.array([0.2, -0.1]) - mean) / std).float(),
-                               atol=1e-5, rtol=1e-5)
-    env = out[OBS_ENV_STATE][0].reshape(4, 6)
-    raw = torch.from_numpy(cond).reshape(4, 6)
-    torch.testing.assert_close(env[:, [0, 1, 4, 5]], raw[:, [0, 1, 4, 5]])  # flags, phase, masks unchanged
-    torch.testing.assert_close(env[0, 2:4], torch.from_numpy((np.array([0.5, 0.4]) - mean) / std).float(),
-                               atol=1e-5, rtol=1e-5)
-    action = post(torch.zeros(1, 2))
-    torch.testing.assert_close(action[0], torch.from_numpy(mean), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out[OBS_STATE][0], obs[OBS_STATE])  # identity
+    policy.reset()
+    ctx = policy.execution_context(out, torch.zeros(1))
+    torch.testing.assert_close(ctx.values[0, 0], torch.from_numpy((np.array([0.5, 0.4]) - mean) / std).float())
+    assert float(ctx.values[0, 1, 0]) == 0.0 and float(ctx.values[0, 1, 1]) == pytest.approx((0.1 - mean[1]) / std[1])
+    start = policy.config.max_conditions
+    torch.testing.assert_close(ctx.values[0, start], torch.from_numpy((np.array([0.2, -0.1]) - mean) / std).float())
+    action = post(torch.tensor([[0.3, 0.7]]))
+    torch.testing.assert_close(action, torch.tensor([[0.3, 0.7]]))
 
 
 def _obs(n_envs: int, seed: int = 0) -> dict:
@@ -130,8 +128,9 @@ def test_select_action_phase_per_env_and_reset(policy_and_data):
     policy.config.phase_stop_threshold = None  # random states: no tracking to judge here
     try:
         policy.reset()
-        step = 1 / (policy.config.demo_length - 1)
-        assert policy.config.demo_length == 200  # derived from the dataset
+        step = 1 / 199
+        assert policy.config.demo_duration_s == pytest.approx(199 / 50) and policy.config.dataset_fps == 50
+        assert policy.phase_step == pytest.approx(step)  # derived from the dataset's timestamps
         a = policy.select_action(_obs(3))
         assert a.shape == (3, 2) and torch.isfinite(a).all()
         torch.testing.assert_close(policy._phase, torch.zeros(3))  # the first step is at t = 0
@@ -193,8 +192,9 @@ def test_empty_context_is_rejected(policy_and_data):
         policy.config.online_feedback = policy.config.condition_on_start = True
 
 
-def test_programmatic_loading_restores_processors(policy_and_data, meta, tmp_path):
-    """load_pretrained must bring back the checkpoint's statistics (a config-only rebuild has none)."""
+def test_programmatic_loading_restores_the_normalization(policy_and_data, meta, tmp_path):
+    """The SM statistics travel in the weights: load_pretrained and a config-only rebuild (LeRobot's
+    pretrained_path=None trap) both execute bit-identically to the trained policy."""
     policy, _ = policy_and_data
     pre, post = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
     ckpt = tmp_path / "pretrained_model"
@@ -206,19 +206,17 @@ def test_programmatic_loading_restores_processors(policy_and_data, meta, tmp_pat
 
     naive_cfg = PreTrainedConfig.from_pretrained(ckpt)
     assert naive_cfg.pretrained_path is None
-    naive_pre, _ = make_pre_post_processors(naive_cfg)
-    naive_stats = {k: v for k, v in normalizer_stats(naive_pre).items() if v}
-    assert ACTION not in naive_stats  # the LeRobot trap this loader avoids
-
+    naive_pre, naive_post = make_pre_post_processors(naive_cfg)
     loaded, lpre, lpost = load_pretrained(ckpt)
-    np.testing.assert_array_equal(normalizer_stats(lpre)[ACTION]["mean"], np.asarray(meta.stats[ACTION]["mean"], np.float32))
+    np.testing.assert_array_equal(sm_stats(loaded)["sm"]["mean"], sm_stats(policy)["sm"]["mean"])
     obs = _obs(2, seed=3)
     policy.eval()
-    policy.reset()
-    loaded.reset()
-    want = post(policy.select_action(pre(dict(obs))))
-    got = lpost(loaded.select_action(lpre(dict(obs))))
-    assert torch.equal(want, got)  # bit-identical
+    want = []
+    for p, pr, po in ((policy, pre, post), (loaded, lpre, lpost), (CNMPPolicy.from_pretrained(ckpt), naive_pre, naive_post)):
+        p.eval()
+        p.reset()
+        want.append(po(p.select_action(pr(dict(obs)))))
+    assert torch.equal(want[0], want[1]) and torch.equal(want[0], want[2])  # bit-identical
 
 
 def test_plugin_discovery_in_fresh_process():
@@ -265,7 +263,9 @@ def test_lerobot_train_then_eval_smoke(tmp_path):
         ["--steps=10", "--batch_size=4", "--save_freq=10", "--log_freq=5"],
         ["--env.type=cnmp_obstacle2d", "--eval.n_episodes=2", "--eval.batch_size=2"],
     )
-    assert json.loads((ckpt / "config.json").read_text())["demo_length"] == 200
+    cfg = json.loads((ckpt / "config.json").read_text())
+    assert cfg["demo_duration_s"] == pytest.approx(199 / 50) and cfg["dataset_fps"] == 50
+    assert cfg["sm"] == ["action:0", "action:1"] and cfg["sm_names"] == ["x", "y"]
 
 
 def test_image_cnmp_through_lerobot_train_and_eval(tmp_path):
@@ -292,12 +292,12 @@ def test_start_and_current_state_enter_the_context(policy_and_data):
     policy.select_action(later)
     ctx = policy.execution_context(later, policy._phase)
     k = policy.config.max_conditions
-    torch.testing.assert_close(ctx.values[:, k], first[OBS_STATE])
+    torch.testing.assert_close(ctx.values[:, k], policy.normalizer.sm(first[OBS_STATE]))
     assert bool((ctx.phase[:, k] == 0).all())
-    torch.testing.assert_close(ctx.values[:, k + 1], later[OBS_STATE])
+    torch.testing.assert_close(ctx.values[:, k + 1], policy.normalizer.sm(later[OBS_STATE]))
     torch.testing.assert_close(ctx.phase[:, k + 1], (policy._phase - policy.phase_step).clamp(min=0))
     policy.reset()
-    assert policy._start is None and policy._phase is None and policy._target is None
+    assert policy._start is None and policy._phase is None and policy._target is None and not policy._has_inputs
 
 
 # ---- online execution: phase stopping, PD, open loop (paper Sec. III) ----------------------------------
@@ -313,14 +313,15 @@ def test_phase_stops_while_tracking_error_is_large_and_resumes(policy_and_data):
     obs = _obs(2, seed=7)
     policy.select_action(obs)  # step 0: phase 0, commands a target per env
     step = policy.phase_step
-    far = policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]])  # env 0 tracked, env 1 far off (held)
+    raw = policy.normalizer.sm_inverse  # the policy tracks in normalized SM units; observations are raw
+    far = raw(policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]]))  # env 0 tracked, env 1 far off (held)
     policy.select_action({**obs, OBS_STATE: far})
     torch.testing.assert_close(policy._phase, torch.tensor([step, 0.0]))  # env 1 stalls, env 0 goes on
     for _ in range(3):
-        far = policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+        far = raw(policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]]))
         policy.select_action({**obs, OBS_STATE: far})
     torch.testing.assert_close(policy._phase, torch.tensor([4 * step, 0.0]))
-    policy.select_action({**obs, OBS_STATE: policy._target.clone()})  # released: error 0
+    policy.select_action({**obs, OBS_STATE: raw(policy._target)})  # released: error 0
     torch.testing.assert_close(policy._phase, torch.tensor([5 * step, step]))
     assert policy.tracking_error(policy._target.clone()).abs().max() == 0
 
@@ -394,16 +395,17 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
         policy.select_action(obs)  # first step: e_prev = e
         state = obs[OBS_STATE]
         action = policy.select_action(obs)
-        e = policy._target - state
-        torch.testing.assert_close(action[:, 0], state[:, 0] + 0.5 * e[:, 0])
-        torch.testing.assert_close(action[:, 1], policy._target[:, 1])
+        n = policy.normalizer
+        sn = n.sm(state)
+        torch.testing.assert_close(action[:, 0], n.sm_inverse(sn + 0.5 * (policy._target - sn))[:, 0])
+        torch.testing.assert_close(action[:, 1], n.sm_inverse(policy._target)[:, 1])
     finally:
         cfg.pd_kp, cfg.pd_kd, cfg.pd_dims = 1.0, 0.0, None
     # kp = 1, kd = 0: the command is the predicted SM itself.
     policy.reset()
     obs = _obs(1, seed=4)
     action = policy.select_action(obs)
-    torch.testing.assert_close(action, policy._target)
+    torch.testing.assert_close(action, policy.normalizer.sm_inverse(policy._target))
 
 
 @pytest.mark.parametrize(
@@ -438,7 +440,7 @@ def test_new_batch_of_envs_starts_at_phase_zero(policy_and_data):
     obs = _obs(2, seed=12)
     policy.select_action(obs)
     torch.testing.assert_close(policy._phase, torch.zeros(2))
-    torch.testing.assert_close(policy._start, obs[OBS_STATE])
+    torch.testing.assert_close(policy._start, policy.normalizer.sm(obs[OBS_STATE]))
 
 
 def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
@@ -456,7 +458,7 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
     cfg = small_config(feedback_dims=(0, 1, 2, 3, 4, 5))
     policy = make_policy(cfg, ds_meta=pp_meta)
     assert policy.config.task_dim == 2 and policy.config.sm_dim == 7
-    pre, post = make_cnmp_pre_post_processors(policy.config, pp_meta.stats)
+    pre, post = make_cnmp_pre_post_processors(policy.config)
     seen = []
     env_cfg = CNMPPickPlaceEnv(task_params=(3.0, 6.0), render_mode=None, episode_length=5)
     env = next(iter(make_env(env_cfg, n_envs=1)[env_cfg.type].values()))
@@ -474,9 +476,10 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
         del policy.select_action
         env.close()
     assert data["action"].shape[-1] == 7 and len(seen) == 5
-    gamma_std = np.asarray(pp_meta.stats[TASK_PARAMS]["std"])
-    gamma_mean = np.asarray(pp_meta.stats[TASK_PARAMS]["mean"])
-    np.testing.assert_allclose(seen[0][0].numpy() * gamma_std + gamma_mean, [3.0, 6.0], atol=1e-5)  # normalized γ
+    np.testing.assert_allclose(seen[0][0].numpy(), [3.0, 6.0], atol=1e-5)  # γ arrives in its units
+    g = policy._episode_inputs({TASK_PARAMS: seen[0]})
+    stats = sm_stats(policy)["task"]
+    np.testing.assert_allclose(g[0].numpy(), (np.array([3.0, 6.0]) - stats["mean"]) / stats["std"], rtol=1e-5)
     # the policy uses γ: another γ, same state, another prediction
     batch = pre({OBS_STATE: torch.zeros(1, 7), TASK_PARAMS: torch.tensor([[3.0, 6.0]])})
     other = pre({OBS_STATE: torch.zeros(1, 7), TASK_PARAMS: torch.tensor([[9.0, 11.0]])})  # extrapolated: accepted
@@ -520,21 +523,33 @@ IMG = "observation.images.top"
 
 
 def image_config(**kw) -> CNMPConfig:
-    cfg = small_config(image_channels=(4, 8), image_embed_dim=6, demo_length=20, **kw)
+    kw.setdefault("use_images", True)
+    cfg = small_config(image_channels=(4, 8), image_embed_dim=6, demo_duration_s=19.0, **kw)
     cfg.input_features = {OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(2,)),
                           IMG: PolicyFeature(type=FeatureType.VISUAL, shape=(1, 16, 16))}
     cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))}
     return cfg
 
 
+class _Frames:
+    """First frames of 3 episodes, as FirstFrames returns them."""
+
+    def __init__(self):
+        self.images = torch.rand(3, 1, 16, 16)
+
+    def __call__(self, episode_index):
+        return {IMG: self.images[episode_index.long()]}
+
+
 def test_images_condition_the_cnmp_through_a_conv_encoder():
+    from lerobot_cnmp.bank import EpisodeBank
+
     torch.manual_seed(0)
     policy = CNMPPolicy(image_config())
     assert policy.config.episode_dim == 6 and policy.model.task_dim == 6
-    b, t = 3, 20
-    batch = {ACTION: torch.randn(b, t, 2), f"{ACTION}_is_pad": torch.zeros(b, t, dtype=torch.bool),
-             "action_phase": torch.linspace(0, 1, t).expand(b, t), IMG: torch.rand(b, 1, 16, 16)}
-    loss, _ = policy.forward(batch)
+    policy.set_bank(EpisodeBank.from_arrays([np.random.randn(20, 2).astype(np.float32) for _ in range(3)]), None)
+    policy._first_frames = _Frames()
+    loss, _ = policy.forward({"episode_index": torch.tensor([0, 1, 2])})
     loss.backward()
     conv = policy.image_encoders[IMG.replace(".", "_")].conv[0].weight
     assert torch.isfinite(loss) and conv.grad is not None and conv.grad.abs().sum() > 0  # the encoder learns
@@ -545,8 +560,14 @@ def test_images_condition_the_cnmp_through_a_conv_encoder():
     policy.reset()
     b_ = policy.predict_action_chunk({**obs, IMG: torch.ones(1, 1, 16, 16)})
     assert not torch.allclose(a, b_)  # another image, another prediction
+    # the image of the episode's first step conditions the whole episode (as the first frame does in training)
     policy.reset()
-    assert policy.select_action(dict(obs)).shape == (1, 2)
+    first = policy.select_action(dict(obs))
+    second_same = policy.select_action({**obs, IMG: torch.ones(1, 1, 16, 16)})
+    policy.reset()
+    policy.select_action(dict(obs))
+    second_ref = policy.select_action(dict(obs))
+    assert first.shape == (1, 2) and torch.equal(second_same, second_ref)
     with pytest.raises(KeyError, match=IMG):
         policy.reset()
         policy.select_action({OBS_STATE: torch.zeros(1, 2)})
@@ -556,7 +577,7 @@ def test_images_condition_the_cnmp_through_a_conv_encoder():
 
 
 def test_image_config_errors():
-    cfg = image_config(use_images=True)
+    cfg = image_config()
     cfg.input_features[IMG] = PolicyFeature(type=FeatureType.VISUAL, shape=(1, 3, 3))
     with pytest.raises(ValueError, match="sides of at least 4"):
         CNMPPolicy(cfg)
