@@ -221,7 +221,8 @@ class CNMPModel:
     # ---- persistence ----------------------------------------------------------------------------------
 
     def save(self, path: str | Path) -> Path:
-        """Write a LeRobot checkpoint: config.json, model.safetensors and the processors (with stats)."""
+        """Write a LeRobot checkpoint: config.json, model.safetensors (with the normalization statistics) and the
+        processors (identity normalizers)."""
         from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
 
         self._require_fitted()
@@ -256,7 +257,7 @@ def sm_stats(policy) -> dict:
 def load_pretrained(path: str | Path, device: str | None = None):
     """(policy, preprocessor, postprocessor) from a checkpoint folder or Hub repo id.
 
-    Restores the checkpoint's own processors (with its normalization statistics). Building processors
+    Restores the checkpoint's own processors; the normalization statistics travel in the weights. Building processors
     from ``PreTrainedConfig.from_pretrained(path)`` alone would silently get empty statistics, because
     that config's ``pretrained_path`` stays None."""
     from lerobot.policies.factory import make_pre_post_processors

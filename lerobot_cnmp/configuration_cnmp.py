@@ -83,7 +83,8 @@ class CNMPConfig(PreTrainedConfig):
             paper: 8, 16, 32, 64). Images need sides of at least 2^len(image_channels) pixels.
         image_embed_dim: Size of each image's embedding (a linear layer after the convolutions).
         demo_duration_s: Duration of a demonstration in seconds (the median over the training episodes,
-            from their timestamps; set when training starts). Execution runs the movement in this time.
+            from their timestamps; set when training from scratch starts, kept when fine-tuning, like the
+            normalization). Execution runs the movement in this time.
         dataset_fps: The training dataset's frame rate (set when training starts).
         control_fps: The rate at which execution is called (``select_action`` per second). None: the
             dataset's fps. The phase advances by 1 / (control_fps x demo_duration_s) per step, so a robot

@@ -437,10 +437,12 @@ class CNMPPolicy(PreTrainedPolicy):
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec
+        # the mask of execution's feedback point (joint layout: the sensed dims); None in the tied layout,
+        # where the fed-back point is a whole SM point
         sensed_only = torch.zeros(config.sm_dim)
-        if not spec.tied:
-            sensed_only[spec.sensed] = 1.0
-        self.register_buffer("sensed_only_mask", sensed_only, persistent=False)
+        sensed_only[spec.sensed] = 1.0
+        self.register_buffer("sensed_only_mask", None if spec.tied or not spec.sensed else sensed_only,
+                             persistent=False)
         self.bank: EpisodeBank | None = None
         self._first_frames: FirstFrames | None = None
         if dataset_meta is not None:
@@ -510,7 +512,8 @@ the sensed state, PD tracking and phase stopping.
 - SM: {c.sm_dim} dims ({', '.join(c.sm_names or [])}); inputs: {inputs}; task parameters γ: {c.task_dim} dims.
 - Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
   m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.{images}
-- Every setting is in `config.json`; the normalization statistics are in the processor files.
+- Every setting is in `config.json`; the SM and γ normalization statistics are in `model.safetensors`
+  (`normalizer.*`), and the processors pass CNMP's features through.
 
 ## Evaluation
 
@@ -525,7 +528,7 @@ lerobot-eval --policy.path={repo_id} --env.type={env_type} --eval.n_episodes=50 
 
 ```python
 from lerobot_cnmp.api import {imports}
-policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # the checkpoint's own statistics{api}
+policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights carry the normalization{api}
 ```
 """
         return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")

@@ -90,12 +90,6 @@ class SMDim:
     def key(self) -> str:
         return f"{self.feature}:{self.index}"
 
-    @property
-    def label(self) -> str:
-        """The dim's name as conditions and plots use it: the dataset's dim name, prefixed by the feature
-        when the SM holds the same name twice (``observation.state.x`` vs ``action.x``)."""
-        return self.name
-
 
 @dataclass(frozen=True)
 class SMSpec:
