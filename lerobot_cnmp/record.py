@@ -73,6 +73,15 @@ def _dataset_features(cfg, spec: SimSpec) -> dict:
     return features
 
 
+def _task_description(env) -> str:
+    """The env's ``task_description``, looked up through its wrappers (a wrapped third-party env may carry
+    it on a wrapper rather than on ``env.unwrapped``); "" if none has one."""
+    try:
+        return str(env.get_wrapper_attr("task_description") or "")
+    except AttributeError:
+        return ""
+
+
 def _frame_value(obs: dict, key: str, dtype: str) -> np.ndarray:
     """The value of env-observation feature ``key`` in ``obs``: ``pixels/<name>`` is the uint8 image
     ``obs["pixels"][name]`` (H, W, C), anything else a float32 vector."""
@@ -261,7 +270,7 @@ def record_dataset(
         for i in tqdm(range(n_episodes), desc=f"recording {sim}", unit="episode", disable=not progress):
             obs, info = env.reset(seed=seed + i, options=spec.reset_options(i, conditions))
             expert.reset()
-            task_str = getattr(base, "task_description", "") or sim
+            task_str = _task_description(env) or sim
             frames = []
             for k in range(spec.demo_length):
                 action = np.asarray(expert.act(k), dtype=np.float32)

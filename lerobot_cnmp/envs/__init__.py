@@ -19,6 +19,7 @@ from lerobot_cnmp.envs.configs import (
     CNMPWeightsEnv,
 )
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
+from lerobot_cnmp.envs import so101  # registers cnmp_so101 and cnmp/SO101PickPlace-v0
 
 for _gym_id, _entry_point, _max_steps in (
     (OBSTACLE2D_GYM_ID, "lerobot_cnmp.envs.obstacle2d:Obstacle2DEnv", DEFAULT_MAX_EPISODE_STEPS),
@@ -273,6 +274,7 @@ SIMS: dict[str, SimSpec] = {
     "cnmp_pickplace": _pickplace_spec(),
     "cnmp_weights": _weights_spec(),
     "cnmp_room": _room_spec(),
+    "cnmp_so101": so101.sim_spec(),
 }
 
 __all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPRoomEnv", "CNMPWeightsEnv", "SIMS", "SimSpec",

