@@ -9,9 +9,8 @@ Layout for SM dimension ``D`` and ``K`` slots (``K * (2 + 2D)`` floats)::
 
     slot k = [present, phase, value_1 .. value_D, mask_1 .. mask_D]
 
-Unused slots are all zeros (``present = 0``). Values are in the SM's own units (the dataset's ``action``
-units); the policy's preprocessor normalizes them with the action statistics (see
-``processor_cnmp.condition_stats``).
+Unused slots are all zeros (``present = 0``). Values are in the SM's own units (the dataset's units of each
+SM dim); the policy normalizes them with its SM statistics (``modeling_cnmp.SMNormalizer``).
 """
 
 from __future__ import annotations

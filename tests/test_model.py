@@ -154,7 +154,7 @@ def test_task_parameters_are_used():
     gam = np.linspace(-1, 1, 9)[:, None]
     demos = np.stack([np.stack([tau, g[0] * np.sin(np.pi * tau)], 1) for g in gam])
     model = CNMPModel(encoder_layers=(64, 64), decoder_layers=(64, 64), optimizer_lr=3e-3).fit(
-        demos, task_params=gam, steps=600, batch_size=16, progress=False
+        demos, task_params=gam, steps=1200, batch_size=16, progress=False
     )
     hi, _ = model.predict([0.5], [Condition(0.0, (0.0, 0.0))], task_params=[0.75])
     lo, _ = model.predict([0.5], [Condition(0.0, (0.0, 0.0))], task_params=[-0.75])

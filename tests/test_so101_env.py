@@ -199,7 +199,7 @@ def test_recorded_dataset():
     for e, idx in df.groupby("episode_index").groups.items():
         assert np.allclose(env_state[idx, 3:], env_state[idx[0], 3:])
     d = np.linalg.norm(starts[:, None, :2] - starts[None, :, :2], axis=-1) + np.eye(len(starts))
-    assert d.min() > 1e-3
+    assert d.min() > 1e-6  # distinct (200 uniform draws in 15 x 20 cm: two may lie within a mm)
     # the episodes end with the block on the goal (success is checked when recording)
     last = df.groupby("episode_index").tail(1).index
     assert np.all(np.linalg.norm(env_state[last, :2] - env_state[last, 3:5], axis=1) < 0.03)
@@ -210,4 +210,4 @@ def test_evaluation_seeds_are_not_recorded_episodes(env):
     starts = np.stack(df.groupby("episode_index").head(1)["observation.environment_state"].to_numpy())
     evals = np.stack([env.reset(seed=100000 + i)[0]["environment_state"] for i in range(50)])
     d = np.linalg.norm(evals[:, None, [0, 1, 3, 4]] - starts[None, :, [0, 1, 3, 4]], axis=-1)
-    assert d.min() > 1e-3
+    assert d.min() > 1e-6  # distinct (200 uniform draws in 15 x 20 cm: two may lie within a mm)
