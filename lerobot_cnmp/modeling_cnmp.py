@@ -555,8 +555,10 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         if c.dataset_fps is None:
             c.dataset_fps = fps if fps is not None else 1.0
 
-    def episodes_for(self, episode_index: Tensor, generator: torch.Generator | None = None) -> Episodes:
-        """Each named episode's draw: n_max + m_max frames uniform over the whole episode, normalized."""
+    def episodes_for(self, episode_index: Tensor, generator: torch.Generator | None = None, draws: int = 1) -> Episodes:
+        """``draws`` independent draws per named episode (rows ``b * draws .. b * draws + draws - 1``): each
+        n_max + m_max frames uniform over the whole episode, normalized. The episode-level input (γ, the conv
+        encoder's embedding of the first frame) is computed once per named episode."""
         if self.bank is None:
             raise RuntimeError(
                 "CNMP trains on demonstrations it holds in memory: build the policy with `dataset_meta=` "
@@ -564,7 +566,10 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         self.normalizer.require()
         c = self.config
         dev = self.normalizer.sm_std.device
-        values, phase, gamma = self.bank.draw(episode_index, c.n_max_context + c.m_max_targets, generator)
+        episode_index = episode_index.reshape(-1)
+        values, phase, _ = self.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
+                                          generator)
+        gamma = None if self.bank.task_params is None else self.bank.task_params[self.bank.rows(episode_index)]
         values = self.normalizer.sm(values.to(dev))
         parts = []
         if gamma is not None and c.task_dim:
@@ -575,6 +580,8 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
             images = self._first_frames(episode_index)
             parts += [self.image_encoders[k.replace(".", "_")](images[k].to(dev)) for k in c.image_keys]
         inputs = None if not parts else (parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1))
+        if inputs is not None and draws > 1:
+            inputs = inputs.repeat_interleave(draws, dim=0)
         valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
         return Episodes(values, phase.to(dev), valid, inputs)
 
@@ -582,10 +589,7 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         c = self.config
         if "episode_index" not in batch:
             raise KeyError(f"CNMP training batches need 'episode_index' (LeRobot's loader gives it); got {sorted(batch)}")
-        ep = batch["episode_index"].reshape(-1)
-        if c.draws_per_sample > 1:
-            ep = ep.repeat_interleave(c.draws_per_sample)
-        episodes = self.episodes_for(ep, generator)
+        episodes = self.episodes_for(batch["episode_index"], generator, draws=c.draws_per_sample)
         context, targets = sample_context_and_targets(
             episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
             self.sensed_only_mask, c.sensed_obs_prob,
