@@ -162,12 +162,8 @@ class EpisodeBank:
     def sample_episodes(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``n`` dataset episode ids, each drawn with probability ∝ its length (as a uniform frame's episode)."""
         frames = torch.randint(int(self.lengths.sum()), (n,), generator=generator)
-        rows = torch.searchsorted(self.starts_cumulative, frames, right=True) - 1
+        rows = torch.searchsorted(self.starts, frames, right=True) - 1  # the episodes are stored back to back
         return torch.from_numpy(self.episode_ids)[rows]
-
-    @property
-    def starts_cumulative(self) -> Tensor:
-        return torch.cat([torch.zeros(1, dtype=torch.long), self.lengths.cumsum(0)[:-1]])
 
     def draw(self, episode_index: Tensor, k: int, generator: torch.Generator | None = None):
         """``k`` frames of each episode, uniform over its whole length: (values [B, k, D], phase [B, k],

@@ -641,7 +641,6 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
     def sensed_sm(self, batch: dict[str, Tensor]) -> Tensor:
         """The live observation's sensed dims as a normalized SM vector [B, D] (other dims 0)."""
         spec = self.config.spec
-        rows = None
         out = None
         for feature, pairs in spec.sensed_features.items():
             if feature not in batch:
@@ -654,8 +653,7 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
             if spec.tied and x.shape[-1] != spec.size:
                 raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
             if out is None:
-                rows = x.shape[0]
-                out = torch.zeros(rows, spec.size, dtype=torch.float32, device=x.device)
+                out = torch.zeros(x.shape[0], spec.size, dtype=torch.float32, device=x.device)
             idx = torch.tensor([i for i, _ in pairs], device=x.device)
             src = torch.tensor([k for _, k in pairs], device=x.device)
             vals = x[:, src].float()
