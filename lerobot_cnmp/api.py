@@ -133,7 +133,6 @@ class CNMPModel:
         elif d != self.config.sm_dim:
             raise ValueError(f"demos have SM dimension {d}, the model has {self.config.sm_dim}")
         self.policy.set_bank(bank, fps)
-        dev = self.device
         gen = torch.Generator(device="cpu").manual_seed(seed)
         torch.manual_seed(seed)
         policy = self.policy

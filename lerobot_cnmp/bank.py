@@ -45,14 +45,13 @@ class EpisodeBank:
                  episode_ids: np.ndarray, task_params: np.ndarray | None = None, durations_s: np.ndarray | None = None):
         self.values = torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
         self.phase = torch.from_numpy(np.ascontiguousarray(phase, dtype=np.float32))
-        self.lengths_np = np.asarray(lengths, dtype=np.int64)
         self.episode_ids = np.asarray(episode_ids, dtype=np.int64)
         size = int(self.episode_ids.max()) + 1 if self.episode_ids.size else 0
         # dataset episode index -> row in this bank (-1: not loaded)
         self.row_of = torch.full((size,), -1, dtype=torch.long)
         self.row_of[torch.from_numpy(self.episode_ids)] = torch.arange(len(self.episode_ids))
         self.starts = torch.from_numpy(np.asarray(starts, dtype=np.int64))
-        self.lengths = torch.from_numpy(self.lengths_np)
+        self.lengths = torch.from_numpy(np.asarray(lengths, dtype=np.int64))
         self.task_params = None if task_params is None else torch.from_numpy(np.asarray(task_params, np.float32))
         self.durations_s = None if durations_s is None else np.asarray(durations_s, np.float64)
 
@@ -155,9 +154,15 @@ class EpisodeBank:
 
     def rows(self, episode_index: Tensor) -> Tensor:
         ep = episode_index.long().reshape(-1).cpu()
-        if bool(((ep < 0) | (ep >= len(self.row_of))).any()) or bool((self.row_of[ep.clamp(0, len(self.row_of) - 1)] < 0).any()):
+        known = (ep >= 0) & (ep < len(self.row_of))
+        rows = torch.where(known, self.row_of[ep.clamp(0, max(len(self.row_of) - 1, 0))], -1)
+        if bool((rows < 0).any()):
             raise KeyError(f"episode index(es) {ep.tolist()[:8]} are not in the CNMP's demonstrations")
-        return self.row_of[ep]
+        return rows
+
+    def task_params_of(self, episode_index: Tensor) -> Tensor | None:
+        """γ of each named episode (its first frame), [B, G] raw units; None without task parameters."""
+        return None if self.task_params is None else self.task_params[self.rows(episode_index)]
 
     def sample_episodes(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``n`` dataset episode ids, each drawn with probability ∝ its length (as a uniform frame's episode)."""
@@ -166,11 +171,10 @@ class EpisodeBank:
         return torch.from_numpy(self.episode_ids)[rows]
 
     def draw(self, episode_index: Tensor, k: int, generator: torch.Generator | None = None):
-        """``k`` frames of each episode, uniform over its whole length: (values [B, k, D], phase [B, k],
-        γ [B, G] or None), raw units, on the CPU."""
+        """``k`` frames of each episode, uniform over its whole length: (values [B, k, D], phase [B, k]), raw
+        units, on the CPU."""
         rows = self.rows(episode_index)
         u = torch.rand((len(rows), k), generator=generator)
         offs = (u * self.lengths[rows, None]).long().clamp(max=(self.lengths[rows, None] - 1))
         idx = self.starts[rows, None] + offs
-        gamma = None if self.task_params is None else self.task_params[rows]
-        return self.values[idx], self.phase[idx], gamma
+        return self.values[idx], self.phase[idx]

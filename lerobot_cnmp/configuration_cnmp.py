@@ -17,7 +17,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 
 from lerobot_cnmp import sm_spec
 from lerobot_cnmp.conditions import slot_size
-from lerobot_cnmp.sm_spec import TASK_PARAMS, SMSpec
+from lerobot_cnmp.sm_spec import TASK_PARAMS, SMSpec  # noqa: F401  (TASK_PARAMS: re-exported)
 
 
 @OptimizerConfig.register_subclass("cnmp_adam")

@@ -567,9 +567,9 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         c = self.config
         dev = self.normalizer.sm_std.device
         episode_index = episode_index.reshape(-1)
-        values, phase, _ = self.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
-                                          generator)
-        gamma = None if self.bank.task_params is None else self.bank.task_params[self.bank.rows(episode_index)]
+        values, phase = self.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
+                                       generator)
+        gamma = self.bank.task_params_of(episode_index)
         values = self.normalizer.sm(values.to(dev))
         parts = []
         if gamma is not None and c.task_dim:

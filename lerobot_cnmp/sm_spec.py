@@ -58,11 +58,15 @@ def features_from_policy(config) -> dict[str, dict]:
     return out
 
 
-def _dim_names(ft: dict) -> list[str]:
+def _raw_names(ft: dict):
+    """A feature's dim names as stored; some datasets nest them: ``{"motors": [...]}``."""
     names = ft.get("names")
+    return next(iter(names.values()), None) if isinstance(names, dict) else names
+
+
+def _dim_names(ft: dict) -> list[str]:
+    names = _raw_names(ft)
     size = int(tuple(ft["shape"])[0])
-    if isinstance(names, dict):  # some datasets nest names: {"motors": [...]}
-        names = next(iter(names.values()), None)
     if not names or len(names) != size:
         return [str(i) for i in range(size)]
     return [str(n) for n in names]
@@ -72,9 +76,7 @@ def is_condition_layout(ft: dict | None) -> bool:
     """Whether ``environment_state`` holds CNMP condition slots (our sims) rather than task data."""
     if ft is None:
         return False
-    names = ft.get("names")
-    if isinstance(names, dict):
-        names = next(iter(names.values()), None)
+    names = _raw_names(ft)
     if names:
         return str(names[0]) == CONDITION_NAME_PREFIX
     return True  # no names: a config built from shapes alone (the in-memory API) uses the slot layout

@@ -22,12 +22,12 @@ def test_draws_cover_the_whole_episode_with_data_phases():
     demos = [np.arange(t, dtype=np.float32)[:, None] * np.ones((1, 2), np.float32) for t in (10, 1000)]
     bank = EpisodeBank.from_arrays(demos)
     gen = torch.Generator().manual_seed(0)
-    values, phase, gamma = bank.draw(torch.tensor([1] * 64), 16, gen)
-    assert values.shape == (64, 16, 2) and phase.shape == (64, 16) and gamma is None
+    values, phase = bank.draw(torch.tensor([1] * 64), 16, gen)
+    assert values.shape == (64, 16, 2) and phase.shape == (64, 16) and bank.task_params_of(torch.tensor([1])) is None
     frames = values[..., 0]
     torch.testing.assert_close(phase, frames / 999)  # phase = frame / (T - 1)
     assert frames.min() < 50 and frames.max() > 950  # every draw spans the whole 1000-frame episode
-    short, _, _ = bank.draw(torch.tensor([0] * 64), 16, gen)
+    short, _ = bank.draw(torch.tensor([0] * 64), 16, gen)
     assert short.max() <= 9 and short.min() >= 0
 
 
