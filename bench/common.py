@@ -35,7 +35,7 @@ def predict_sm(policy, pre, post, batch: dict, phase, query_phases):
     phase = torch.as_tensor(phase, dtype=torch.float32).reshape(1)
     query = torch.as_tensor(query_phases, dtype=torch.float32).reshape(1, -1)
     with torch.no_grad():
-        mean, std = policy.executor()(policy.execution_context(batch, phase), query)
+        mean, std = policy.network()(policy.executor.execution_context(batch, phase), query)
     n = policy.normalizer
     return post(n.sm_inverse(mean[0])).numpy(), (std[0] * n.sm_std).numpy()
 

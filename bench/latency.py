@@ -76,11 +76,11 @@ def main() -> dict:
 
     # In-process: the context the policy builds each step, then the network alone.
     policy.reset()
-    ctx = policy.execution_context(pre(dict(obs)), torch.full((1,), 0.3))
+    ctx = policy.executor.execution_context(pre(dict(obs)), torch.full((1,), 0.3))
     query = torch.full((1, 1), 0.3)
     trajectory = torch.linspace(0, 1, 200)[None]
 
-    executor = policy.executor()
+    executor = policy.network()
 
     def control_step():
         executor(ctx, query)

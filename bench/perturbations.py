@@ -37,7 +37,7 @@ def run(policy, pre, post, perturbation: str, feedback: bool, episodes: int, bat
 
     # Episodes run to their end (300 steps) so the final goal error means something; success is any step's.
     env, env_pre, env_post = obstacle_sim(policy, perturbation, batch, terminate_on_success=False)
-    policy.config.online_feedback = feedback
+    policy.config.execution.online_feedback = feedback
     successes, goal_errors = [], []
     for start in range(0, episodes, batch):
         data = rollout(env, policy, env_pre, env_post, pre, post, seeds=list(range(seed + start, seed + start + batch)),
@@ -63,14 +63,14 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
     trace = {"phase": [], "target": []}
 
     def record(p):
-        trace["phase"].append(float(p._phase[0]))
-        trace["target"].append(post(p._target[:1].clone())[0].numpy())
+        trace["phase"].append(float(p.executor.phase[0]))
+        trace["target"].append(post(p.executor.target[:1].clone())[0].numpy())
 
     from lerobot.scripts.lerobot_eval import rollout
     from lerobot.utils.constants import OBS_STATE
 
     env, env_pre, env_post = obstacle_sim(policy, "hold", 1)
-    policy.config.online_feedback = True
+    policy.config.execution.online_feedback = True
     data = rollout(env, policy, env_pre, env_post, pre, post, seeds=[seed], return_observations=True,
                    predicted_latents_callback=record)
     env.close()

@@ -42,8 +42,8 @@ def run_episode(policy, pre, post, env, shape: int, mass: float, seed: int, max_
         batch = policy_batch(pre, obs)
         with torch.no_grad():
             action = policy.select_action(batch)
-        mean, std = predict_sm(policy, pre, post, batch, policy._phase, [1.0])  # the end, as the executor sees it
-        log["phase"].append(float(policy._phase[0]))
+        mean, std = predict_sm(policy, pre, post, batch, policy.executor.phase, [1.0])  # the end, as the executor sees it
+        log["phase"].append(float(policy.executor.phase[0]))
         log["state"].append(obs["agent_pos"].copy())
         log["end_mean"].append(mean[0, :2])
         log["end_std"].append(std[0, :2])

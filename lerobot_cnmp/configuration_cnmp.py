@@ -17,6 +17,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 
 from lerobot_cnmp import sm_spec
 from lerobot_cnmp.conditions import slot_size
+from lerobot_cnmp.executor import LEGACY_EXECUTION_FIELDS, ExecutionConfig, apply_legacy_execution
 from lerobot_cnmp.sm_spec import TASK_PARAMS, SMSpec  # noqa: F401  (TASK_PARAMS: re-exported)
 
 
@@ -86,37 +87,18 @@ class CNMPConfig(PreTrainedConfig):
             from their timestamps; set when training from scratch starts, kept when fine-tuning, like the
             normalization). Execution runs the movement in this time.
         dataset_fps: The training dataset's frame rate (set when training starts).
-        control_fps: The rate at which execution is called (``select_action`` per second). None: the
-            dataset's fps. The phase advances by 1 / (control_fps x demo_duration_s) per step, so a robot
-            controlled at another rate than the recording runs the movement in the same time.
-        online_feedback: The paper's execution loop: every control step, condition on the current sensed SM
-            (``feedback_dims`` of ``observation.state``) besides the episode's conditions, track the
-            prediction with the PD law below, and stop the phase while the tracking error is large.
-            False: replay the trajectory generated at t = 0 (the open-loop baseline; the phase always advances).
-        feedback_dims: SM dimensions fed back (conditioned on) and, unless ``tracking_dims`` says otherwise,
-            used for the tracking error; None: all.
-        tracking_dims: SM dimensions of the tracking error that stops the phase; None: ``feedback_dims``.
-            E.g. feed force readings back (they carry the information) but stop the phase on position only.
-        condition_on_start: Keep the state sensed at the first step after ``reset()`` as a condition at
-            t = 0 for the whole episode (the start of the movement, as in the paper's Fig. 2).
-        phase_step: Phase advance per control step; None: 1 / (control_fps x demo_duration_s), the
-            demonstrations' pace in seconds.
-        phase_stop_threshold: The phase does not advance while the tracking error (max over the fed-back
-            dims of |sensed SM - SM commanded at the previous step|, in action standard deviations) is above
-            this. None: never stop.
-        pd_kp, pd_kd: PD law on the position target (tied layout only; the joint layout outputs the
-            predicted action itself): action = s + kp·e + kd·(e - e_prev), e = SM(τ) - s.
-            kp < 1 approaches the prediction gradually (a first-order lag), which keeps the accelerations,
-            and the inertial loads a wrist F/T sensor reads, close to the demonstrations' when the prediction
-            jumps after re-conditioning.
-            kp = 1, kd = 0 commands the predicted SM itself.
-        pd_dims: SM dimensions the PD law applies to; the others are commanded the prediction SM(τ) itself
-            (e.g. a gripper, whose command is a set point, not a position to approach). None: all.
-        sigma_scaled_gains: Scale kp per dim by sigma_ref / σ (the predicted σ, normalized units): softer
-            where the demonstrations vary more (the paper's compliance proposal), clipped to [kp_min, kp_max].
-        numpy_execution: On CPU, execute (``select_action``, ``predict_action_chunk``) with a numpy copy of
-            the network (``NumpyCNMP``: same weights and equations, 2-4x less time per control step than
-            torch's per-op dispatch). False: run the torch model.
+        max_conditions: The condition capacity: most conditions (the user's plus those an env writes in
+            ``observation.environment_state`` slots) one execution conditions on, besides the start and the
+            feedback. A model setting, independent of the dataset: a checkpoint trained on a robot's dataset
+            without condition slots still takes goals from the user.
+        conditions: Conditions given at deployment (``--policy.conditions``): a JSON list of dicts, or a path to
+            a .json/.yaml file, in the dataset's units and dim names, e.g.
+            ``[{"t": 1.0, "shoulder_pan.pos": 12.5, "gripper.pos": 0}]`` (``t``: phase in [0, 1], or ``time_s``:
+            seconds from the movement's start). Validated when the policy is built; see
+            :func:`lerobot_cnmp.executor.parse_conditions`. From Python: ``policy.set_conditions(...)``.
+        execution: How the CNMP is executed (phase clock, feedback, phase stopping, PD, chunks):
+            :class:`lerobot_cnmp.executor.ExecutionConfig`, ``--policy.execution.<field>``. Configs and
+            checkpoints with these fields at the top level (before ``execution`` existed) load unchanged.
         optimizer_lr: Adam learning rate (the paper: 1e-4 with batch 1; batched training tolerates more).
         optimizer_grad_clip_norm: Gradient clipping used by ``lerobot-train``.
         optimizer_fused: Use torch's fused Adam kernel (one kernel for all parameters instead of ~10 small
@@ -155,24 +137,31 @@ class CNMPConfig(PreTrainedConfig):
     image_channels: tuple[int, ...] = (8, 16, 32, 64)
     image_embed_dim: int = 32
 
-    # Execution (paper Sec. III: online conditioning, PD tracking, phase stopping).
+    # Execution (paper Sec. III): timing of the demonstrations, conditions, the executor's own settings.
     demo_duration_s: float | None = None
     dataset_fps: float | None = None
+    max_conditions: int = 8
+    conditions: str | None = None
+    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+
+    # Deprecated aliases of ``execution.<same name>``: the flat layout of checkpoints and configs written before
+    # the executor had its own config. Given (a config.json, ``--policy.pd_kp=...``, ``CNMPConfig(pd_kp=...)``),
+    # they move into ``execution`` and are reset to None; see ``executor.apply_legacy_execution``.
     control_fps: float | None = None
-    online_feedback: bool = True
+    phase_step: float | None = None
+    online_feedback: bool | None = None
+    condition_on_start: bool | None = None
     feedback_dims: tuple[int, ...] | None = None
     tracking_dims: tuple[int, ...] | None = None
+    phase_stop_threshold: float | None = None
+    pd_kp: float | None = None
+    pd_kd: float | None = None
     pd_dims: tuple[int, ...] | None = None
-    condition_on_start: bool = True
-    phase_step: float | None = None
-    phase_stop_threshold: float | None = 0.15
-    pd_kp: float = 1.0
-    pd_kd: float = 0.0
-    sigma_scaled_gains: bool = False
-    sigma_ref: float = 0.05
-    kp_min: float = 0.2
-    kp_max: float = 1.0
-    numpy_execution: bool = True
+    sigma_scaled_gains: bool | None = None
+    sigma_ref: float | None = None
+    kp_min: float | None = None
+    kp_max: float | None = None
+    numpy_execution: bool | None = None
 
     # Optimizer.
     optimizer_lr: float = 1e-3
@@ -223,28 +212,19 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
         if self.demo_duration_s is not None and not self.demo_duration_s > 0:
             raise ValueError(f"demo_duration_s must be > 0, got {self.demo_duration_s}")
-        for name in ("dataset_fps", "control_fps"):
-            if getattr(self, name) is not None and not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.dataset_fps is not None and not self.dataset_fps > 0:
+            raise ValueError(f"dataset_fps must be > 0, got {self.dataset_fps}")
+        if self.max_conditions < 0:
+            raise ValueError(f"max_conditions must be >= 0, got {self.max_conditions}")
+        if isinstance(self.execution, dict):
+            self.execution = ExecutionConfig(**self.execution)
+        legacy = {name: getattr(self, name) for name in LEGACY_EXECUTION_FIELDS}
+        self.execution = apply_legacy_execution(self.execution, legacy)
+        for name in LEGACY_EXECUTION_FIELDS:
+            setattr(self, name, None)
         for name in ("sm", "task_features", "sm_names"):
             if getattr(self, name) is not None:
                 setattr(self, name, tuple(str(x) for x in getattr(self, name)))
-        if self.phase_step is not None and not 0.0 < self.phase_step <= 1.0:
-            raise ValueError(f"phase_step must be in (0, 1], got {self.phase_step}")
-        if self.phase_stop_threshold is not None and not self.phase_stop_threshold > 0:
-            raise ValueError(f"phase_stop_threshold must be > 0 (or None to never stop), got {self.phase_stop_threshold}")
-        if not self.pd_kp > 0 or self.pd_kd < 0:
-            raise ValueError(f"PD gains need pd_kp > 0 and pd_kd >= 0, got pd_kp={self.pd_kp}, pd_kd={self.pd_kd}")
-        if not 0 < self.kp_min <= self.kp_max or not self.sigma_ref > 0:
-            raise ValueError(
-                f"need 0 < kp_min <= kp_max and sigma_ref > 0, got kp_min={self.kp_min}, kp_max={self.kp_max}, "
-                f"sigma_ref={self.sigma_ref}"
-            )
-        for name in ("feedback_dims", "tracking_dims", "pd_dims"):
-            if getattr(self, name) is not None:
-                setattr(self, name, tuple(int(d) for d in getattr(self, name)))
-                if not getattr(self, name):
-                    raise ValueError(f"{name} must name at least one SM dimension (or be None)")
         for kind in ("STATE", "ENV", "ACTION"):
             mode = self.normalization_mapping.get(kind, NormalizationMode.IDENTITY)
             if mode is not NormalizationMode.IDENTITY:
@@ -328,12 +308,15 @@ class CNMPConfig(PreTrainedConfig):
                 f"condition layout of lerobot_cnmp.conditions); declare it as task parameters "
                 f"(--policy.task_features='[{OBS_ENV_STATE}]') if it holds task data"
             )
+        if self.env_condition_slots > self.max_conditions:
+            raise ValueError(f"{OBS_ENV_STATE!r} carries {self.env_condition_slots} condition slots, more than "
+                             f"max_conditions={self.max_conditions}")
         for name in ("feedback_dims", "tracking_dims", "pd_dims"):
-            dims = getattr(self, name)
+            dims = getattr(self.execution, name)
             if dims is not None and (not dims or min(dims) < 0 or max(dims) >= self.sm_dim):
                 raise ValueError(f"{name} {dims} outside the SM dimensions 0..{self.sm_dim - 1}")
         for name in ("feedback_dims", "tracking_dims"):
-            dims = getattr(self, name)
+            dims = getattr(self.execution, name)
             if dims is not None and not set(dims) <= set(spec.sensed):
                 raise ValueError(f"{name} {dims} must be sensed SM dims {spec.sensed} (names: "
                                  f"{[self.sm_names[i] for i in spec.sensed] if self.sm_names else '?'})")
@@ -383,5 +366,12 @@ class CNMPConfig(PreTrainedConfig):
         return OBS_ENV_STATE not in used
 
     @property
-    def max_conditions(self) -> int:
+    def env_condition_slots(self) -> int:
+        """The condition slots of ``observation.environment_state`` (our envs' layout); 0 without them."""
         return self.env_state_feature.shape[-1] // slot_size(self.sm_dim) if self.condition_feature else 0
+
+    @property
+    def n_action_steps(self) -> int:
+        """Actions per ``predict_action_chunk`` (``execution.n_action_steps``), where LeRobot's callers look."""
+        return self.execution.n_action_steps
+

@@ -6,8 +6,8 @@ Read top-down:
    in the batch, n ~ U{1..n_max} observations (t_i, SM(t_i)) and m ~ U{1..m_max} queries (t_q, SM(t_q)).
 2. ``CNMP`` -- pure torch:  r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i]);  r = mean_i r_i  (``aggregate``);
    (μ_q, σ_q) = Q([t_q, γ, r])  (``decode``);  loss = -log N(SM(t_q) | μ_q, σ_q)  (``nll``, Eq. 1).
-3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2),
-   and executes online in ``select_action`` (condition on goals + current state, predict the next SM).
+3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2);
+   execution (condition on goals + current state, predict the next SM) is :mod:`lerobot_cnmp.executor`.
 
 Everything works on padded batches with validity masks; padded entries never change an output.
 """
@@ -22,11 +22,9 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import OBS_ENV_STATE
-
 from lerobot_cnmp.bank import EpisodeBank
-from lerobot_cnmp.conditions import decode_conditions
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.executor import CNMPExecutor, check_finite
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -337,11 +335,6 @@ class NumpyCNMP:
 # --------------------------------------------------------------------------------------------------------
 
 
-def check_finite(name: str, x: Tensor) -> None:
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name} contains NaN or infinite values")
-
-
 class SMNormalizer(nn.Module):
     """The SM's and γ's normalization statistics, as buffers saved with the weights (``model.safetensors``).
 
@@ -395,18 +388,10 @@ class CNMPPolicy(PreTrainedPolicy):
     (:class:`~lerobot_cnmp.bank.EpisodeBank`, read from the dataset when LeRobot builds the policy with
     ``dataset_meta``, or given by the in-memory API). One sampler and one loss serve both paths.
 
-    Execution (``select_action``, the paper's loop of Sec. III / Fig. 3): per env, the policy keeps a phase
-    τ (0 after ``reset``) that advances by Δ = 1 / (control_fps x demo_duration_s) per call. Each step it
-    1. holds τ while the tracking error (sensed SM vs the SM expected now, in normalized units) exceeds
-       ``phase_stop_threshold`` (with ``online_feedback``; open loop always advances);
-    2. conditions on the episode's conditions (``observation.environment_state`` slots), on the sensed dims at
-       the first step (t = 0, ``condition_on_start``) and, with ``online_feedback``, on the current sensed
-       dims: at τ in the joint layout (frame k's state and action share a phase), at τ - Δ in the tied layout
-       (the state step k - 1's command reached);
-    3. outputs the predicted ``action`` dims at τ (joint layout), or the PD command s + kp·e + kd·(e - e_prev),
-       e = μ(τ) - s (tied layout), in the dataset's units.
-    γ and the conv encoder's image are read at the first step of an episode, as training reads them at the
-    episode's first frame.
+    Execution (``select_action``, ``predict_action_chunk``, ``reset``) is forwarded to
+    :class:`~lerobot_cnmp.executor.CNMPExecutor` (``self.executor``), which holds the execution state and its
+    own settings (``config.execution``): the paper's loop of Sec. III / Fig. 3, chunks and RTC. The user's
+    conditions: ``config.conditions`` (``--policy.conditions``) or :meth:`set_conditions`.
     """
 
     config_class = CNMPConfig
@@ -447,9 +432,9 @@ class CNMPPolicy(PreTrainedPolicy):
         self._first_frames: FirstFrames | None = None
         if dataset_meta is not None:
             self.set_dataset(dataset_meta)
-        self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see executor()
+        self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see network()
         self._numpy_key: tuple | None = None
-        self.reset()
+        self.executor = CNMPExecutor(self)  # the execution loop and its state (validates the user's conditions)
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
@@ -467,71 +452,12 @@ class CNMPPolicy(PreTrainedPolicy):
 
     def generate_model_card(self, dataset_repo_id, model_type="cnmp", license=None, tags=None, cfg=None,
                             dataset_meta=None, eval_info: dict | None = None, repo_id: str | None = None):
-        """The model card of a CNMP checkpoint (used by ``lerobot-train --policy.push_to_hub=true`` and by
-        ``lerobot_cnmp.hub.push_checkpoint``): what it is, what it was trained on, its settings, its
-        evaluation figures when given, and how to run it. Built offline (no Hub validation call)."""
-        from huggingface_hub import ModelCard, ModelCardData
+        """The model card (``lerobot-train --policy.push_to_hub=true``, ``lerobot-cnmp-push``):
+        :func:`lerobot_cnmp.hub.model_card`."""
+        from lerobot_cnmp.hub import model_card
 
-        c = self.config
-        repo_id = repo_id or getattr(c, "repo_id", None) or "<repo_id>"
-        dataset_repo_id = dataset_repo_id or (cfg.dataset.repo_id if cfg is not None else None)
-        data = ModelCardData(
-            license=license or c.license or "apache-2.0", library_name="lerobot", pipeline_tag="robotics",
-            tags=sorted({"robotics", "lerobot", "cnmp", "movement-primitives", *(tags or c.tags or [])}),
-            datasets=dataset_repo_id, model_name="cnmp",
-        )
-        inputs = ", ".join(f"`{k}` {list(v.shape)}" for k, v in c.input_features.items())
-        trained = f"[{dataset_repo_id}](https://huggingface.co/datasets/{dataset_repo_id})" if dataset_repo_id else "(not recorded)"
-        steps = f", {cfg.steps} steps of batch {cfg.batch_size}" if cfg is not None else ""
-        groups = list((eval_info or {}).get("per_group", {}))  # lerobot-eval's eval_info names the env
-        env_type = groups[0] if groups else "<env type, e.g. cnmp_obstacle2d>"
-        images = ""
-        if c.image_keys:
-            images = (f"\n- Images ({', '.join(f'`{k}`' for k in c.image_keys)}) through a conv encoder: 3x3 conv + 2x2 "
-                      f"max-pool per width in {list(c.image_channels)}, embedding {c.image_embed_dim} per image.")
-        # the in-memory API (CNMPModel) takes SM trajectories only: image checkpoints run as a policy
-        imports = "load_pretrained" if c.image_keys else "CNMPModel, load_pretrained"
-        api = ("" if c.image_keys else
-               f'\nmodel = CNMPModel.load("{repo_id}")                                   # or the in-memory API')
-        results = "No evaluation figures were attached to this card."
-        if eval_info:
-            overall = eval_info.get("overall", eval_info)
-            results = (f"`lerobot-eval`: **pc_success {overall.get('pc_success')}** over "
-                       f"{overall.get('n_episodes')} episodes.")
-        body = f"""# CNMP policy `{repo_id}`
-
-A Conditional Neural Movement Primitive (Seker, Imre, Piater, Ugur, RSS 2019) trained with the
-lerobot-cnmp plugin as a LeRobot policy (`--policy.type=cnmp`): an encoder over
-observed (phase, SM) points, mean aggregation and a Gaussian query network predict the sensorimotor (SM)
-trajectory given any subset of SM points and task parameters γ; executed online with re-conditioning on
-the sensed state, PD tracking and phase stopping.
-
-## Training
-
-- Data: {trained}{steps}.
-- SM: {c.sm_dim} dims ({', '.join(c.sm_names or [])}); inputs: {inputs}; task parameters γ: {c.task_dim} dims.
-- Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
-  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.{images}
-- Every setting is in `config.json`; the SM and γ normalization statistics are in `model.safetensors`
-  (`normalizer.*`), and the processors pass CNMP's features through.
-
-## Evaluation
-
-{results}
-
-## Use
-
-```bash
-pip install -e .   # in a lerobot-cnmp checkout: registers --policy.type=cnmp and its sims
-lerobot-eval --policy.path={repo_id} --env.type={env_type} --eval.n_episodes=50 --policy.device=cpu
-```
-
-```python
-from lerobot_cnmp.api import {imports}
-policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights carry the normalization{api}
-```
-"""
-        return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")
+        return model_card(self.config, dataset_repo_id, license=license, tags=tags, cfg=cfg, eval_info=eval_info,
+                          repo_id=repo_id)
 
     # ---- training -------------------------------------------------------------------------------------
 
@@ -599,74 +525,25 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
     def get_optim_params(self) -> dict:
         return self.parameters()
 
-    # ---- execution ------------------------------------------------------------------------------------
+    # ---- execution (lerobot_cnmp.executor) ---------------------------------------------------------------
 
     def reset(self) -> None:
-        """Restart every env's execution state (called by lerobot-eval at each episode start)."""
-        self._phase: Tensor | None = None  # τ per env
-        self._start: Tensor | None = None  # sensed SM at the first step (condition_on_start), normalized
-        self._target: Tensor | None = None  # tied: SM commanded at the previous step (normalized)
-        self._expected: Tensor | None = None  # joint: sensed SM predicted for this step (normalized)
-        self._error: Tensor | None = None  # previous PD error e, for the D term
-        self._inputs: Tensor | None = None  # γ and image embeddings read at the first step
-        self._has_inputs = False
+        """Restart every env's execution state (called by lerobot-eval / lerobot-rollout at each episode start);
+        the user's conditions stay."""
+        if getattr(self, "executor", None) is not None:
+            self.executor.reset()
 
-    @property
-    def phase_step(self) -> float:
-        c = self.config
-        if c.phase_step is not None:
-            return c.phase_step
-        if c.demo_duration_s is None:
-            raise RuntimeError(
-                "demo_duration_s is unknown: train on a dataset (it is set from the episodes' timestamps) or set "
-                "--policy.demo_duration_s or --policy.phase_step"
-            )
-        fps = c.control_fps or c.dataset_fps or 1.0
-        return min(1.0, 1.0 / (fps * c.demo_duration_s))
+    def network(self):
+        """The network that execution runs: the numpy copy on CPU (``execution.numpy_execution``, rebuilt
+        whenever a weight changes), else the torch model."""
+        if not self.config.execution.numpy_execution or self.training or self.model.frequencies.device.type != "cpu":
+            return self.model
+        key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
+        if self._numpy_key != key:
+            self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
+        return self._numpy_model
 
-    @staticmethod
-    def _dims_mask(like: Tensor, dims) -> Tensor:
-        if dims is None:
-            return torch.ones_like(like)
-        mask = torch.zeros_like(like)
-        mask[..., list(dims)] = 1.0
-        return mask
-
-    def _feedback_mask(self, like: Tensor) -> Tensor:
-        """The fed-back dims: ``feedback_dims``, else every sensed dim."""
-        c = self.config
-        dims = c.feedback_dims if c.feedback_dims is not None else (None if c.spec.tied else c.spec.sensed)
-        return self._dims_mask(like, dims)
-
-    def sensed_sm(self, batch: dict[str, Tensor]) -> Tensor:
-        """The live observation's sensed dims as a normalized SM vector [B, D] (other dims 0)."""
-        spec = self.config.spec
-        out = None
-        for feature, pairs in spec.sensed_features.items():
-            if feature not in batch:
-                raise KeyError(f"the CNMP feeds back {feature!r}: the observation needs it; it has {sorted(batch)}")
-            x = batch[feature]
-            x = x.reshape(x.shape[0], -1) if x.ndim != 2 else x
-            if x.shape[-1] <= max(k for _, k in pairs):
-                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM reads dim {max(k for _, k in pairs)} "
-                                 f"of it (the checkpoint's SM does not match this env/robot)")
-            if spec.tied and x.shape[-1] != spec.size:
-                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
-            if out is None:
-                out = torch.zeros(x.shape[0], spec.size, dtype=torch.float32, device=x.device)
-            idx = torch.tensor([i for i, _ in pairs], device=x.device)
-            src = torch.tensor([k for _, k in pairs], device=x.device)
-            vals = x[:, src].float()
-            check_finite(feature, vals)
-            out[:, idx] = vals
-        if out is None:
-            return None
-        full = self.normalizer.sm(out)
-        mask = torch.zeros(spec.size, device=out.device)
-        mask[spec.sensed] = 1.0
-        return full * mask
-
-    def _episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
+    def episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
         """The episode-level input of E and Q read at the first step of the episode: γ and the embedding of
         each image feature, [B, episode_dim]; None when there is neither."""
         c = self.config
@@ -694,142 +571,30 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
             return None
         return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
-    def _condition_slots(self, batch: dict[str, Tensor]):
-        d = self.config.sm_dim
-        env = batch[OBS_ENV_STATE]
-        present, c_phase, c_values, c_mask = decode_conditions(env, d)
-        given = present > 0.5
-        check_finite(OBS_ENV_STATE + " (flags, phases, masks)", torch.stack([present, c_phase], -1))
-        used = given[..., None] & (c_mask > 0.5)
-        if bool((~torch.isfinite(c_values) & used).any()):
-            raise ValueError(f"a condition in {OBS_ENV_STATE} has NaN or infinite values in a constrained dim")
-        if bool(((c_phase < 0) | (c_phase > 1))[given].any()):
-            raise ValueError("a condition in environment_state has a phase outside [0, 1]")
-        values = torch.where(used, self.normalizer.sm(torch.nan_to_num(c_values.float())), torch.zeros_like(c_values))
-        return c_phase, values, c_mask.float(), given & (c_mask.sum(-1) > 0)
+    def set_conditions(self, conditions) -> None:
+        """Give (or change, mid-episode: the next action is planned with them) the user's conditions, in the
+        dataset's units and dim names: see :meth:`lerobot_cnmp.executor.CNMPExecutor.set_conditions`."""
+        self.executor.set_conditions(conditions)
 
-    def execution_context(self, batch: dict[str, Tensor], phase: Tensor, sensed: Tensor | None = None) -> Context:
-        """Conditions from ``environment_state``, the sensed dims at the first step at t = 0 and (with
-        ``online_feedback``) the current sensed dims (at τ, or τ - Δ in the tied layout)."""
-        c = self.config
-        self.normalizer.require()
-        phases, values, masks, valids = [], [], [], []
-        if c.max_conditions and OBS_ENV_STATE in batch:
-            for lst, x in zip((phases, values, masks, valids), self._condition_slots(batch), strict=True):
-                lst.append(x)
-        need_state = (c.online_feedback or c.condition_on_start) and bool(c.spec.sensed)
-        if need_state and sensed is None:
-            sensed = self.sensed_sm(batch)
-        start_mask = self._dims_mask(sensed[0], None if c.spec.tied else c.spec.sensed) if need_state else None
-        if c.condition_on_start and need_state:
-            if self._start is None or self._start.shape[0] != sensed.shape[0]:
-                self._start = sensed.clone()
-            phases.append(torch.zeros_like(phase)[:, None])
-            values.append(self._start[:, None, :])
-            masks.append(start_mask.expand_as(sensed)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
-        if c.online_feedback and need_state:
-            at = (phase - self.phase_step).clamp(min=0.0) if c.spec.tied else phase
-            phases.append(at[:, None])
-            values.append(sensed[:, None, :])
-            masks.append(self._feedback_mask(sensed)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
-        if not phases:
-            raise ValueError(
-                "nothing to condition on: the observation has no environment_state conditions and both "
-                "online_feedback and condition_on_start are off"
-            )
-        valid = torch.cat(valids, dim=1)
-        if not bool(valid.any(dim=1).all()):
-            raise ValueError("an env in the batch has no condition to condition on (empty context)")
-        if not self._has_inputs:
-            self._inputs, self._has_inputs = self._episode_inputs(batch), True
-        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self._inputs)
-
-    def tracking_error(self, sensed: Tensor) -> Tensor:
-        """Per env, max over the tracked dims (``tracking_dims``, else the fed-back ones) of |sensed SM - SM
-        expected now| (tied: the SM commanded at the previous step), in normalized units."""
-        ref = self._target if self.config.spec.tied else self._expected
-        if ref is None:
-            return torch.zeros(sensed.shape[0], device=sensed.device, dtype=sensed.dtype)
-        c = self.config
-        dims = c.tracking_dims if c.tracking_dims is not None else c.feedback_dims
-        mask = self._dims_mask(sensed, dims) if dims is not None else self._feedback_mask(sensed)
-        return ((sensed - ref).abs() * mask).amax(dim=-1)
-
-    def pd_gains(self, std: Tensor) -> tuple[Tensor, Tensor]:
-        """(kp, kd) per env and SM dim: kp constant or scaled by sigma_ref / σ within [kp_min, kp_max]; outside
-        ``pd_dims`` kp = 1 and kd = 0 (the prediction itself is commanded)."""
-        c = self.config
-        kp = torch.full_like(std, c.pd_kp) if not c.sigma_scaled_gains else (c.pd_kp * c.sigma_ref / std).clamp(
-            c.kp_min, c.kp_max)
-        kd = torch.full_like(std, c.pd_kd)
-        if c.pd_dims is not None:
-            on = self._dims_mask(std, c.pd_dims)
-            kp, kd = on * kp + (1 - on), on * kd
-        return kp, kd
-
-    def _ensure_state(self, batch: dict[str, Tensor]) -> int:
-        ref = next((v for k, v in batch.items() if isinstance(v, Tensor) and k.startswith("observation.")), None)
-        if ref is None:
-            raise KeyError(f"the observation has no 'observation.*' tensor; it has {sorted(batch)}")
-        n = ref.shape[0]
-        if self._phase is None or self._phase.shape[0] != n:
-            self.reset()
-            self._phase = torch.zeros(n, device=ref.device, dtype=torch.float32)
-        return n
-
-    def executor(self):
-        """The network that execution runs: the numpy copy on CPU (``numpy_execution``, rebuilt whenever a
-        weight changes), else the torch model."""
-        if not self.config.numpy_execution or self.training or self.model.frequencies.device.type != "cpu":
-            return self.model
-        key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
-        if self._numpy_key != key:
-            self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
-        return self._numpy_model
-
-    def _predict(self, batch: dict[str, Tensor], sensed: Tensor | None, queries: Tensor) -> tuple[Tensor, Tensor]:
-        """(μ, σ) of the SM at ``queries`` [B, M] (normalized units), [B, M, D] each."""
-        return self.executor()(self.execution_context(batch, self._phase, sensed), queries)
+    def supports_rtc(self) -> bool:
+        """CNMP does Real-Time Chunking natively: it conditions the new chunk on the leftover actions."""
+        return True
 
     @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """The action predicted at the current phase, [B, 1, A] in the dataset's units (no phase update, no PD)."""
-        self._ensure_state(batch)
-        sensed = self.sensed_sm(batch) if self.config.spec.sensed else None
-        mean, _ = self._predict(batch, sensed, self._phase[:, None])
-        return self.normalizer.sm_inverse(mean[..., self.config.spec.commanded], self.config.spec.commanded)
+    def predict_action_chunk(self, batch: dict[str, Tensor], inference_delay: int = 0,
+                             prev_chunk_left_over: Tensor | None = None, n_steps: int | None = None,
+                             return_std: bool = False, **kwargs):
+        """The planned actions from the current phase over the next ``execution.n_action_steps`` (or
+        ``n_steps``), [B, n, A] in the dataset's units (the predicted mean; σ with ``return_std=True``, and
+        always in ``policy.executor.last_std``); the phase clock moves to the chunk's last step. RTC:
+        ``prev_chunk_left_over`` [T, A] and ``inference_delay`` (see :mod:`lerobot_cnmp.executor`)."""
+        actions, std = self.executor.chunk(batch, n_steps, inference_delay, prev_chunk_left_over)
+        return (actions, std) if return_std else actions
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """One step of the execution loop (see the class docstring), for every env of the batch."""
-        c = self.config
-        spec = c.spec
-        self._ensure_state(batch)  # resets the state of a new batch of envs
-        self.normalizer.require()
-        sensed = self.sensed_sm(batch) if spec.sensed else None
-        if self._target is not None or self._expected is not None:  # not the first step: the phase may advance
-            advance = torch.ones_like(self._phase, dtype=torch.bool)
-            if c.online_feedback and c.phase_stop_threshold is not None and sensed is not None:
-                advance = self.tracking_error(sensed) <= c.phase_stop_threshold
-            self._phase = torch.where(advance, (self._phase + self.phase_step).clamp(max=1.0), self._phase)
-        if spec.tied:
-            mean, std = self._predict(batch, sensed, self._phase[:, None])
-            target, std = mean[:, 0], std[:, 0]
-            action = target
-            if c.online_feedback and sensed is not None:
-                error = target - sensed
-                previous = self._error if self._error is not None else error
-                kp, kd = self.pd_gains(std)
-                action = sensed + kp * error + kd * (error - previous)
-                self._error = error
-            self._target = target
-            return self.normalizer.sm_inverse(action)
-        nxt = (self._phase + self.phase_step).clamp(max=1.0)
-        mean, _ = self._predict(batch, sensed, torch.stack([self._phase, nxt], dim=1))
-        self._expected = mean[:, 1]
-        return self.normalizer.sm_inverse(mean[:, 0, spec.commanded], spec.commanded)
+        """One step of the execution loop for every env of the batch (:meth:`CNMPExecutor.step`)."""
+        return self.executor.step(batch)
 
 
 class FirstFrames:

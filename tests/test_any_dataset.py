@@ -164,21 +164,21 @@ def test_phase_advances_by_one_over_fps_times_duration(trained, root):
     _, ckpt = trained
     policy = CNMPPolicy.from_pretrained(ckpt)
     policy.eval()
-    c = policy.config
+    c = policy.config.execution
     c.phase_stop_threshold = None  # no phase stopping: the phase advances every step
-    step = policy.phase_step
-    assert step == pytest.approx(1.0 / (FPS * c.demo_duration_s), rel=1e-9)
+    step = policy.executor.phase_step
+    assert step == pytest.approx(1.0 / (FPS * policy.config.demo_duration_s), rel=1e-9)
     obs = _raw_obs(root)
     policy.reset()
     for k in range(6):  # call k + 1 runs at phase k * Δ (the first call runs at 0)
         policy.select_action(dict(obs))
-        assert float(policy._phase[0]) == pytest.approx(k * step, rel=1e-5, abs=1e-7)
+        assert float(policy.executor.phase[0]) == pytest.approx(k * step, rel=1e-5, abs=1e-7)
     c.control_fps = 60
-    assert policy.phase_step == pytest.approx(step / 2, rel=1e-9)
+    assert policy.executor.phase_step == pytest.approx(step / 2, rel=1e-9)
     policy.reset()
     for _ in range(4):
         policy.select_action(dict(obs))
-    assert float(policy._phase[0]) == pytest.approx(3 * step / 2, rel=1e-5)
+    assert float(policy.executor.phase[0]) == pytest.approx(3 * step / 2, rel=1e-5)
 
 
 # ---- 2. fine-tuning keeps CNMP's normalization -----------------------------------------------------------
@@ -210,7 +210,7 @@ def test_finetuning_keeps_the_checkpoint_normalization(trained, root, root2, tmp
     for p in (original, finetuned, scratch2):
         p.eval()
         p.reset()
-        contexts.append(p.execution_context(dict(obs), torch.zeros(1)))
+        contexts.append(p.executor.execution_context(dict(obs), torch.zeros(1)))
     a, b, s = contexts
     assert torch.equal(a.values, b.values) and torch.equal(a.phase, b.phase) and torch.equal(a.mask, b.mask)
     assert torch.equal(a.task_params, b.task_params)
@@ -399,7 +399,7 @@ def test_sm_declared_by_dim_names_resolves_to_canonical_indices(root, meta):
     policy.eval()
     policy.reset()
     obs = _raw_obs(root)
-    sensed = policy.sensed_sm(obs)
+    sensed = policy.executor.sensed_sm(obs)
     expected = (torch.tensor([float(obs[OBS_STATE][0, 5]), float(obs[OBS_STATE][0, 0])]) - policy.normalizer.sm_mean[7:]) \
         / policy.normalizer.sm_std[7:]
     torch.testing.assert_close(sensed[0, 7:], expected)

@@ -20,6 +20,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot_cnmp.api import load_pretrained, sm_stats
 from lerobot_cnmp.conditions import Condition, encode_conditions
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.executor import ExecutionConfig
 from lerobot_cnmp.modeling_cnmp import CNMPPolicy
 from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
 
@@ -106,10 +107,10 @@ def test_sm_inputs_share_the_sm_statistics(policy_and_data):
     out = pre(obs)
     torch.testing.assert_close(out[OBS_STATE][0], obs[OBS_STATE])  # identity
     policy.reset()
-    ctx = policy.execution_context(out, torch.zeros(1))
+    ctx = policy.executor.execution_context(out, torch.zeros(1))
     torch.testing.assert_close(ctx.values[0, 0], torch.from_numpy((np.array([0.5, 0.4]) - mean) / std).float())
     assert float(ctx.values[0, 1, 0]) == 0.0 and float(ctx.values[0, 1, 1]) == pytest.approx((0.1 - mean[1]) / std[1])
-    start = policy.config.max_conditions
+    start = policy.config.env_condition_slots
     torch.testing.assert_close(ctx.values[0, start], torch.from_numpy((np.array([0.2, -0.1]) - mean) / std).float())
     action = post(torch.tensor([[0.3, 0.7]]))
     torch.testing.assert_close(action, torch.tensor([[0.3, 0.7]]))
@@ -125,21 +126,21 @@ def _obs(n_envs: int, seed: int = 0) -> dict:
 def test_select_action_phase_per_env_and_reset(policy_and_data):
     policy, _ = policy_and_data
     policy.eval()
-    policy.config.phase_stop_threshold = None  # random states: no tracking to judge here
+    policy.config.execution.phase_stop_threshold = None  # random states: no tracking to judge here
     try:
         policy.reset()
         step = 1 / 199
         assert policy.config.demo_duration_s == pytest.approx(199 / 50) and policy.config.dataset_fps == 50
-        assert policy.phase_step == pytest.approx(step)  # derived from the dataset's timestamps
+        assert policy.executor.phase_step == pytest.approx(step)  # derived from the dataset's timestamps
         a = policy.select_action(_obs(3))
         assert a.shape == (3, 2) and torch.isfinite(a).all()
-        torch.testing.assert_close(policy._phase, torch.zeros(3))  # the first step is at t = 0
+        torch.testing.assert_close(policy.executor.phase, torch.zeros(3))  # the first step is at t = 0
         for _ in range(9):
             policy.select_action(_obs(3))
-        torch.testing.assert_close(policy._phase, torch.full((3,), 9 * step))
+        torch.testing.assert_close(policy.executor.phase, torch.full((3,), 9 * step))
         policy.reset()
         policy.select_action(_obs(3))
-        torch.testing.assert_close(policy._phase, torch.zeros(3))
+        torch.testing.assert_close(policy.executor.phase, torch.zeros(3))
         # Each env of a batch is conditioned on its own observation: env 1 alone gives env 1's action.
         policy.reset()
         many = policy.select_action(_obs(3, seed=5))
@@ -150,9 +151,9 @@ def test_select_action_phase_per_env_and_reset(policy_and_data):
         # The phase saturates at 1.
         for _ in range(250):
             policy.select_action(_obs(3))
-        assert float(policy._phase.max()) == 1.0
+        assert float(policy.executor.phase.max()) == 1.0
     finally:
-        policy.config.phase_stop_threshold = CNMPConfig.phase_stop_threshold
+        policy.config.execution.phase_stop_threshold = ExecutionConfig.phase_stop_threshold
 
 
 @pytest.mark.parametrize(
@@ -183,13 +184,13 @@ def test_condition_phase_outside_range_is_rejected(policy_and_data):
 
 def test_empty_context_is_rejected(policy_and_data):
     policy, _ = policy_and_data
-    policy.config.online_feedback = policy.config.condition_on_start = False
+    policy.config.execution.online_feedback = policy.config.execution.condition_on_start = False
     try:
         policy.reset()
         with pytest.raises(ValueError, match="empty context"):
             policy.select_action({**_obs(1), OBS_ENV_STATE: torch.zeros(1, 24)})
     finally:
-        policy.config.online_feedback = policy.config.condition_on_start = True
+        policy.config.execution.online_feedback = policy.config.execution.condition_on_start = True
 
 
 def test_programmatic_loading_restores_the_normalization(policy_and_data, meta, tmp_path):
@@ -290,14 +291,14 @@ def test_start_and_current_state_enter_the_context(policy_and_data):
     first, later = _obs(2, seed=1), _obs(2, seed=2)
     policy.select_action(first)
     policy.select_action(later)
-    ctx = policy.execution_context(later, policy._phase)
-    k = policy.config.max_conditions
+    ctx = policy.executor.execution_context(later, policy.executor.phase)
+    k = policy.config.env_condition_slots
     torch.testing.assert_close(ctx.values[:, k], policy.normalizer.sm(first[OBS_STATE]))
     assert bool((ctx.phase[:, k] == 0).all())
     torch.testing.assert_close(ctx.values[:, k + 1], policy.normalizer.sm(later[OBS_STATE]))
-    torch.testing.assert_close(ctx.phase[:, k + 1], (policy._phase - policy.phase_step).clamp(min=0))
+    torch.testing.assert_close(ctx.phase[:, k + 1], (policy.executor.phase - policy.executor.phase_step).clamp(min=0))
     policy.reset()
-    assert policy._start is None and policy._phase is None and policy._target is None and not policy._has_inputs
+    assert policy.executor.start is None and policy.executor.phase is None and policy.executor.target is None and not policy.executor.has_inputs
 
 
 # ---- online execution: phase stopping, PD, open loop (paper Sec. III) ----------------------------------
@@ -312,43 +313,48 @@ def test_phase_stops_while_tracking_error_is_large_and_resumes(policy_and_data):
     policy.reset()
     obs = _obs(2, seed=7)
     policy.select_action(obs)  # step 0: phase 0, commands a target per env
-    step = policy.phase_step
+    step = policy.executor.phase_step
     raw = policy.normalizer.sm_inverse  # the policy tracks in normalized SM units; observations are raw
-    far = raw(policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]]))  # env 0 tracked, env 1 far off (held)
+    far = raw(policy.executor.target + torch.tensor([[0.0, 0.0], [50.0, 50.0]]))  # env 0 tracked, env 1 far off (held)
     policy.select_action({**obs, OBS_STATE: far})
-    torch.testing.assert_close(policy._phase, torch.tensor([step, 0.0]))  # env 1 stalls, env 0 goes on
+    torch.testing.assert_close(policy.executor.phase, torch.tensor([step, 0.0]))  # env 1 stalls, env 0 goes on
     for _ in range(3):
-        far = raw(policy._target + torch.tensor([[0.0, 0.0], [1.0, 1.0]]))
+        far = raw(policy.executor.target + torch.tensor([[0.0, 0.0], [50.0, 50.0]]))
         policy.select_action({**obs, OBS_STATE: far})
-    torch.testing.assert_close(policy._phase, torch.tensor([4 * step, 0.0]))
-    policy.select_action({**obs, OBS_STATE: raw(policy._target)})  # released: error 0
-    torch.testing.assert_close(policy._phase, torch.tensor([5 * step, step]))
-    assert policy.tracking_error(policy._target.clone()).abs().max() == 0
+    torch.testing.assert_close(policy.executor.phase, torch.tensor([4 * step, 0.0]))
+    policy.select_action({**obs, OBS_STATE: raw(policy.executor.target)})  # released: error 0
+    torch.testing.assert_close(policy.executor.phase, torch.tensor([5 * step, step]))
+    assert policy.executor.tracking_error(policy.executor.target.clone()).abs().max() == 0
 
 
 def test_feedback_dims_limit_the_tracking_error(policy_and_data):
     policy, _ = policy_and_data
-    policy.config.feedback_dims = (0,)
+    policy.config.execution.feedback_dims = (0,)
     try:
         policy.reset()
         obs = _obs(1, seed=8)
         policy.select_action(obs)
-        off_in_y = policy._target + torch.tensor([[0.0, 5.0]])  # only the unwatched dim is off
-        assert float(policy.tracking_error(off_in_y)[0]) == 0.0
-        ctx = policy.execution_context({**obs, OBS_STATE: off_in_y}, policy._phase)
+        off_in_y = policy.executor.target + torch.tensor([[0.0, 5.0]])  # only the unwatched dim is off
+        assert float(policy.executor.tracking_error(off_in_y)[0]) == 0.0
+        ctx = policy.executor.execution_context({**obs, OBS_STATE: off_in_y}, policy.executor.phase)
         torch.testing.assert_close(ctx.mask[0, -1], torch.tensor([1.0, 0.0]))  # current state: x only
-        policy.config.feedback_dims, policy.config.tracking_dims = None, (1,)  # feed both back, track y only
-        off_in_x = policy._target + torch.tensor([[5.0, 0.0]])
-        assert float(policy.tracking_error(off_in_x)[0]) == 0.0 and float(policy.tracking_error(off_in_y)[0]) == 5.0
-        ctx = policy.execution_context({**obs, OBS_STATE: off_in_x}, policy._phase)
+        policy.config.execution.feedback_dims, policy.config.execution.tracking_dims = None, (1,)  # feed both back, track y only
+        off_in_x = policy.executor.target + torch.tensor([[5.0, 0.0]])
+        sigma_y = float(policy.executor.reference_std[0, 1])  # the error is in units of the predicted σ
+        assert float(policy.executor.tracking_error(off_in_x)[0]) == 0.0
+        assert float(policy.executor.tracking_error(off_in_y)[0]) == pytest.approx(5.0 / sigma_y, rel=1e-6)
+        policy.config.execution.phase_stop_units = "normalized"  # old checkpoints' units
+        assert float(policy.executor.tracking_error(off_in_y)[0]) == 5.0
+        ctx = policy.executor.execution_context({**obs, OBS_STATE: off_in_x}, policy.executor.phase)
         torch.testing.assert_close(ctx.mask[0, -1], torch.tensor([1.0, 1.0]))
     finally:
-        policy.config.feedback_dims = policy.config.tracking_dims = None
+        policy.config.execution.feedback_dims = policy.config.execution.tracking_dims = None
+        policy.config.execution.phase_stop_units = "sigma"
 
 
 def test_open_loop_replays_the_plan(policy_and_data):
     policy, _ = policy_and_data
-    policy.config.online_feedback = False
+    policy.config.execution.online_feedback = False
     try:
         policy.reset()
         obs = _obs(1, seed=9)
@@ -361,24 +367,24 @@ def test_open_loop_replays_the_plan(policy_and_data):
         b_policy.select_action(obs)
         b = b_policy.select_action(obs)
         torch.testing.assert_close(a, b)
-        torch.testing.assert_close(policy._phase, torch.tensor([policy.phase_step]))
+        torch.testing.assert_close(policy.executor.phase, torch.tensor([policy.executor.phase_step]))
         assert first.shape == (1, 2)
-        ctx = policy.execution_context(obs, policy._phase)
-        assert ctx.phase.shape[1] == policy.config.max_conditions + 1  # conditions + start, no current state
+        ctx = policy.executor.execution_context(obs, policy.executor.phase)
+        assert ctx.phase.shape[1] == policy.config.env_condition_slots + 1  # conditions + start, no current state
     finally:
-        policy.config.online_feedback = True
+        policy.config.execution.online_feedback = True
 
 
 def test_pd_law_and_sigma_scaled_gains(policy_and_data):
     policy, _ = policy_and_data
-    cfg = policy.config
+    cfg = policy.config.execution
     std = torch.tensor([[1e-4, 0.01], [0.05, 10.0]])
-    kp, kd = policy.pd_gains(std)
+    kp, kd = policy.executor.pd_gains(std)
     torch.testing.assert_close(kp, torch.full_like(std, cfg.pd_kp))
     torch.testing.assert_close(kd, torch.full_like(std, cfg.pd_kd))
     cfg.sigma_scaled_gains = True
     try:
-        k, _ = policy.pd_gains(std)
+        k, _ = policy.executor.pd_gains(std)
         assert bool(((k >= cfg.kp_min) & (k <= cfg.kp_max)).all())
         assert float(k[0, 0]) == pytest.approx(cfg.kp_max) and float(k[1, 1]) == pytest.approx(cfg.kp_min)  # low σ stiff
     finally:
@@ -386,7 +392,7 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
     # pd_dims: the PD law on x only; y is commanded the prediction itself (kp = 1, kd = 0).
     cfg.pd_kp, cfg.pd_kd, cfg.pd_dims = 0.5, 0.2, (0,)
     try:
-        kp, kd = policy.pd_gains(std)
+        kp, kd = policy.executor.pd_gains(std)
         torch.testing.assert_close(kp, torch.tensor([[0.5, 1.0], [0.5, 1.0]]))
         torch.testing.assert_close(kd, torch.tensor([[0.2, 0.0], [0.2, 0.0]]))
         cfg.pd_kd = 0.0
@@ -397,15 +403,15 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
         action = policy.select_action(obs)
         n = policy.normalizer
         sn = n.sm(state)
-        torch.testing.assert_close(action[:, 0], n.sm_inverse(sn + 0.5 * (policy._target - sn))[:, 0])
-        torch.testing.assert_close(action[:, 1], n.sm_inverse(policy._target)[:, 1])
+        torch.testing.assert_close(action[:, 0], n.sm_inverse(sn + 0.5 * (policy.executor.target - sn))[:, 0])
+        torch.testing.assert_close(action[:, 1], n.sm_inverse(policy.executor.target)[:, 1])
     finally:
         cfg.pd_kp, cfg.pd_kd, cfg.pd_dims = 1.0, 0.0, None
     # kp = 1, kd = 0: the command is the predicted SM itself.
     policy.reset()
     obs = _obs(1, seed=4)
     action = policy.select_action(obs)
-    torch.testing.assert_close(action, policy.normalizer.sm_inverse(policy._target))
+    torch.testing.assert_close(action, policy.normalizer.sm_inverse(policy.executor.target))
 
 
 @pytest.mark.parametrize(
@@ -423,6 +429,8 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
 )
 def test_bad_execution_config_is_rejected(field, value, match):
     with pytest.raises(ValueError, match=match):
+        ExecutionConfig(**{field: value})
+    with pytest.raises(ValueError, match=match):  # the old flat keyword form
         CNMPConfig(**{field: value})
 
 
@@ -439,8 +447,8 @@ def test_new_batch_of_envs_starts_at_phase_zero(policy_and_data):
         policy.select_action(_obs(3, seed=11))
     obs = _obs(2, seed=12)
     policy.select_action(obs)
-    torch.testing.assert_close(policy._phase, torch.zeros(2))
-    torch.testing.assert_close(policy._start, policy.normalizer.sm(obs[OBS_STATE]))
+    torch.testing.assert_close(policy.executor.phase, torch.zeros(2))
+    torch.testing.assert_close(policy.executor.start, policy.normalizer.sm(obs[OBS_STATE]))
 
 
 def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
@@ -477,7 +485,7 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
         env.close()
     assert data["action"].shape[-1] == 7 and len(seen) == 5
     np.testing.assert_allclose(seen[0][0].numpy(), [3.0, 6.0], atol=1e-5)  # γ arrives in its units
-    g = policy._episode_inputs({TASK_PARAMS: seen[0]})
+    g = policy.episode_inputs({TASK_PARAMS: seen[0]})
     stats = sm_stats(policy)["task"]
     np.testing.assert_allclose(g[0].numpy(), (np.array([3.0, 6.0]) - stats["mean"]) / stats["std"], rtol=1e-5)
     # the policy uses γ: another γ, same state, another prediction
@@ -497,12 +505,12 @@ def test_numpy_execution_matches_torch_and_follows_weight_changes(policy_and_dat
     batch = {OBS_STATE: torch.tensor([[0.1, 0.2]]), OBS_ENV_STATE: env}
 
     def actions(numpy_execution: bool) -> torch.Tensor:
-        policy.config.numpy_execution = numpy_execution
+        policy.config.execution.numpy_execution = numpy_execution
         policy.reset()
         return torch.stack([policy.select_action(dict(batch)) for _ in range(3)])
 
     try:
-        assert not isinstance(policy.executor(), torch.nn.Module)
+        assert not isinstance(policy.network(), torch.nn.Module)
         torch.testing.assert_close(actions(True), actions(False), atol=1e-5, rtol=1e-5)
         before = actions(True)
         with torch.no_grad():  # a weight update (as an optimizer step makes) must reach the numpy copy
@@ -511,11 +519,11 @@ def test_numpy_execution_matches_torch_and_follows_weight_changes(policy_and_dat
         torch.testing.assert_close(after, actions(False), atol=1e-5, rtol=1e-5)
         assert not torch.allclose(before, after)
         policy.train()
-        assert policy.executor() is policy.model  # training runs torch
+        assert policy.network() is policy.model  # training runs torch
     finally:
         with torch.no_grad():
             policy.model.decoder[-1].bias.sub_(0.5)
-        policy.config.numpy_execution = True
+        policy.config.execution.numpy_execution = True
         policy.eval()
 
 
