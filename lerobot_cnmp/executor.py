@@ -258,6 +258,7 @@ def parse_conditions(raw, spec, demo_duration_s: float | None, capacity: int, sm
         values = np.full(spec.size, np.nan, dtype=np.float32)
         mask = np.zeros(spec.size, dtype=np.float32)
         for name, value in item.items():
+            name = str(name)  # YAML reads a dim named 1 as an int
             if name not in names:
                 raise ValueError(f"condition {k}: unknown dim {name!r}; the SM's dims are {sorted(names)}")
             v = _number(value, k, name)
@@ -488,7 +489,10 @@ class CNMPExecutor:
             phases.append(at[:, None])
             values.append(sensed[:, None, :])
             masks.append(self.feedback_mask(sensed)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+            # at phase 0 the sensed state is the start itself: a second copy would double its weight in the
+            # mean aggregation and pull the plan away from the other conditions
+            fresh = at > 0 if e.condition_on_start else torch.ones_like(phase, dtype=torch.bool)
+            valids.append(fresh[:, None])
         if extra is not None:
             phases.append(extra[0])
             values.append(extra[1])
