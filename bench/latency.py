@@ -3,13 +3,16 @@
     python bench/latency.py [--calls 2000]
 
 Figures on CPU with 1 torch thread, same policy and observation stream, p50 over ``--calls`` calls:
-- ``control_step_p50_ms``: in-process, the network the policy executes (``CNMPPolicy.executor()``: on
+- ``control_step_p50_ms``: in-process, the network the policy executes (``CNMPPolicy.network()``: on
   CPU the numpy copy ``NumpyCNMP``) on a ready context of the policy's execution (2 conditions, the start
   state, the sensed state), one query: encode + aggregate + decode;
 - ``trajectory_200_ms``: the same context, a whole 200-step trajectory with σ (200 queries in one call);
 - ``*_torch_*``: the same two with the torch model (``--policy.numpy_execution=false``, and training);
 - ``select_action_p50_ms``: what ``lerobot-eval`` runs per step: preprocessor (normalize, batch, device) ->
-  ``CNMPPolicy.select_action`` -> postprocessor (unnormalize).
+  ``CNMPPolicy.select_action`` -> postprocessor (unnormalize);
+- ``chunk_50_p50_ms``: preprocessor -> ``CNMPPolicy.predict_action_chunk`` of 50 steps with σ
+  (``return_std=True``), what LeRobot's RTC engine and the async server call.
+Bars (issue 15): select_action with processors p50 <= 0.5 ms, a 50-step chunk with σ <= 1 ms (``bars``).
 The calls run in ``--rounds`` interleaved rounds; the spread of the round p50s shows how much the machine
 itself moved during the run. Latency does not depend on the weights, so the policy is built from the
 dataset without training.
@@ -100,14 +103,22 @@ def main() -> dict:
         with torch.inference_mode():
             post(policy.select_action(pre(dict(obs))))
 
+    def chunk_50():
+        with torch.inference_mode():
+            policy.predict_action_chunk(pre(dict(obs)), n_steps=50, return_std=True)
+
     policy.reset()
     fns = {"control_step": control_step, "trajectory_200": trajectory_200, "select_action": select_action,
+           "chunk_50": chunk_50,
            "control_step_torch": control_step_torch, "trajectory_200_torch": trajectory_200_torch}
     t = interleaved_p50(fns, args.calls, args.rounds)
     res = {
         "control_step_p50_ms": round(t["control_step"][0], 4),
         "trajectory_200_ms": round(t["trajectory_200"][0], 4),
         "select_action_p50_ms": round(t["select_action"][0], 4),
+        "chunk_50_p50_ms": round(t["chunk_50"][0], 4),
+        "bars": {"select_action_p50_ms <= 0.5": bool(t["select_action"][0] <= 0.5),
+                 "chunk_50_p50_ms <= 1.0": bool(t["chunk_50"][0] <= 1.0)},
         "control_step_torch_p50_ms": round(t["control_step_torch"][0], 4),
         "trajectory_200_torch_ms": round(t["trajectory_200_torch"][0], 4),
         "executor": type(executor).__name__,
@@ -118,7 +129,8 @@ def main() -> dict:
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU",
     }
     labels = {"control_step": "control step", "trajectory_200": "200-step trajectory + σ",
-              "select_action": "select_action + procs", "control_step_torch": "control step, torch",
+              "select_action": "select_action + procs", "chunk_50": "50-step chunk + σ + procs",
+              "control_step_torch": "control step, torch",
               "trajectory_200_torch": "200-step traj., torch"}
     print(f"{'figure':<26}{'p50 (ms)':>10}   rounds' p50s")
     for k, label in labels.items():

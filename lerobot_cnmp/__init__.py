@@ -2,11 +2,14 @@
 
 Importing this package registers, with LeRobot and gymnasium:
 - the policy type ``cnmp`` (``--policy.type=cnmp``),
-- the sims ``cnmp_obstacle2d`` (``--env.type=cnmp_obstacle2d``) and their gymnasium ids.
+- the sims ``cnmp_obstacle2d`` (``--env.type=cnmp_obstacle2d``) and their gymnasium ids,
+- the MuJoCo SO-101 robot ``cnmp_so101_mujoco`` (``--robot.type``) and its scripted leader
+  ``cnmp_so101_scripted`` (``--teleop.type``).
 """
 
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
 from lerobot_cnmp import envs  # noqa: F401  (registers env configs and gymnasium ids)
+from lerobot_cnmp import robot_so101  # noqa: F401  (registers --robot.type=cnmp_so101_mujoco, --teleop.type=cnmp_so101_scripted)
 
 __all__ = ["CNMPConfig"]
 __version__ = "0.1.0"

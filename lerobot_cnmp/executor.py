@@ -200,10 +200,17 @@ def load_condition_spec(spec) -> list[dict]:
             else:
                 spec = json.loads(text)
         else:
+            # JSON, or YAML flow style (what draccus hands over from the command line: it parses a CLI value
+            # as YAML and a str field gets the Python repr of the list)
+            import yaml
+
             try:
-                spec = json.loads(text)
-            except json.JSONDecodeError as e:
-                raise ValueError(f"conditions {text!r} are neither JSON nor a path to a .json/.yaml file: {e}") from e
+                spec = yaml.safe_load(text)
+            except yaml.YAMLError as e:
+                raise ValueError(f"conditions {text!r} are neither JSON/YAML nor a path to a .json/.yaml file: {e}") from e
+            if isinstance(spec, str):
+                raise ValueError(f"conditions {text!r} are neither JSON/YAML nor a path to a .json/.yaml file (no such "
+                                 "file)")
     if isinstance(spec, dict):
         spec = [spec]
     if not isinstance(spec, (list, tuple)) or not all(isinstance(c, dict) for c in spec):
@@ -343,6 +350,7 @@ class CNMPExecutor:
         self.last_chunk: Tensor | None = None  # the previous chunk (normalized SM means) and its phases
         self.last_chunk_actions: Tensor | None = None
         self.last_chunk_phase: Tensor | None = None
+        self.last_chunk_step: int | None = None  # the caller's timestep of the last chunk's first action
         self.last_std: Tensor | None = None  # σ of the last action(s) returned, dataset units
 
     def _ensure_state(self, batch: dict[str, Tensor]) -> int:
@@ -611,10 +619,25 @@ class CNMPExecutor:
                 return prev_phase[j:j + m]
         return None
 
+    def _phase_of_step(self, step: int) -> Tensor | None:
+        """The phase of control step ``step`` (a caller's timestep, e.g. the async client's) from the chunk the
+        previous call planned for its own timestep; None without one."""
+        if self.last_chunk_step is None or self.last_chunk_phase is None:
+            return None
+        k = step - self.last_chunk_step
+        if k < 0:
+            return None
+        n = self.last_chunk_phase.shape[0]
+        if k < n:
+            return self.last_chunk_phase[k].reshape(1)
+        return (self.last_chunk_phase[-1] + (k - n + 1) * self.phase_step).clamp(max=1.0).reshape(1)
+
     @torch.no_grad()
     def chunk(self, batch: dict[str, Tensor], n_steps: int | None = None, inference_delay: int = 0,
-              prev_chunk_left_over: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """The planned actions and their σ [B, n, A] (dataset units) at τ, τ + Δ, ... (see the module doc)."""
+              prev_chunk_left_over: Tensor | None = None, timestep: int | None = None) -> tuple[Tensor, Tensor]:
+        """The planned actions and their σ [B, n, A] (dataset units) at τ, τ + Δ, ... (see the module doc).
+        ``timestep``: the caller's index of the control step the observation was taken at (LeRobot's async
+        client numbers its observations); the chunk then starts at that step's phase in the previous plan."""
         c, e = self.config, self.settings
         spec, norm = c.spec, self.policy.normalizer
         n_steps = int(n_steps or e.n_action_steps)
@@ -640,6 +663,8 @@ class CNMPExecutor:
                 mask[..., spec.commanded] = 1.0
                 values = norm.sm(raw) * mask
                 extra = (phases[:k].reshape(1, k).to(raw), values, mask)
+        if start is None and timestep is not None and self.phase.shape[0] == 1:
+            start = self._phase_of_step(int(timestep))
         if start is None:
             self.advance(sensed)
             start = self.phase
@@ -657,6 +682,7 @@ class CNMPExecutor:
         else:
             self.expected, self.reference_std = mean[:, n_steps], std[:, n_steps]
         self.last_chunk_actions, self.last_chunk_phase = actions[0].clone(), queries[0, :n_steps].clone()
+        self.last_chunk_step = None if timestep is None else int(timestep)
         self.last_chunk = mean
         self.last_std = sigma
         return actions, sigma

