@@ -303,6 +303,7 @@ class CNMPExecutor:
         self.policy = policy
         self._user: list[UserCondition] = []
         self._user_tensors: tuple | None = None
+        self._index_cache: dict = {}
         self.reset()
         self.set_conditions(policy.config.conditions)
 
@@ -448,17 +449,25 @@ class CNMPExecutor:
                 raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
             if out is None:
                 out = torch.zeros(x.shape[0], spec.size, dtype=torch.float32, device=x.device)
-            idx = torch.tensor([i for i, _ in pairs], device=x.device)
-            src = torch.tensor([k for _, k in pairs], device=x.device)
+            key = (feature, x.device)
+            if key not in self._index_cache:  # (SM index, feature index) tensors, built once per device
+                self._index_cache[key] = (torch.tensor([i for i, _ in pairs], device=x.device),
+                                          torch.tensor([k for _, k in pairs], device=x.device))
+            idx, src = self._index_cache[key]
             vals = x[:, src].float()
             check_finite(feature, vals)
             out[:, idx] = vals
         if out is None:
             return None
         full = self.policy.normalizer.sm(out)
-        mask = torch.zeros(spec.size, device=out.device)
-        mask[spec.sensed] = 1.0
-        return full * mask
+        if spec.tied:  # every SM dim is sensed
+            return full
+        key = ("sensed mask", out.device)
+        if key not in self._index_cache:
+            mask = torch.zeros(spec.size, device=out.device)
+            mask[spec.sensed] = 1.0
+            self._index_cache[key] = mask
+        return full * self._index_cache[key]
 
     # ---- context and prediction -----------------------------------------------------------------------------
 

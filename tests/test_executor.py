@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from lerobot.configs.policies import PreTrainedConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.api import CNMPModel, load_pretrained
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
@@ -72,18 +72,20 @@ def test_user_goal_is_reached_and_a_moving_goal_replans_at_once(policy):
     assert abs(float(plan[-1, 1]) - 0.8) < 0.15, plan[-1]
     policy.set_conditions(json.dumps([{"t": 1.0, y: -0.5}]))
     assert abs(float(full_plan(policy)[-1, 1]) + 0.5) < 0.15
-    # mid-episode: halfway through, the goal moves; the next step already heads for the new goal
-    policy.set_conditions([{"t": 1.0, y: 0.8}])
-    policy.reset()
-    s = torch.zeros(1, 2)
-    for _ in range(50):
-        s = policy.select_action({**obs(), OBS_STATE: s})
+    # mid-episode: halfway through, the goal moves; the next plan already heads for the new goal
+    def first_half():
+        policy.set_conditions([{"t": 1.0, y: 0.8}])
+        policy.reset()
+        s = torch.zeros(1, 2)
+        for _ in range(50):
+            s = policy.select_action({**obs(), OBS_STATE: s})
+        return s
+
+    s = first_half()
     before = policy.predict_action_chunk({**obs(), OBS_STATE: s}, n_steps=200)[0, -1, 1]
-    policy.reset()
-    for _ in range(50):  # same first half again
-        s2 = policy.select_action({**obs(), OBS_STATE: torch.zeros(1, 2) if _ == 0 else s2})
+    s = first_half()
     policy.set_conditions([{"t": 1.0, y: -0.8}])
-    after = policy.predict_action_chunk({**obs(), OBS_STATE: s2}, n_steps=200)[0, -1, 1]
+    after = policy.predict_action_chunk({**obs(), OBS_STATE: s}, n_steps=200)[0, -1, 1]
     # the goal moved from +0.8 to -0.8 halfway (y is already ~0.4 there): the plan turns towards it at once
     assert float(before) > 0.5 and float(after) < float(before) - 0.5, (before, after)
 
