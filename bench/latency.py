@@ -70,7 +70,7 @@ def main() -> dict:
     from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
 
     meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_obstacle2d", root=args.dataset)
-    cfg = CNMPConfig(device="cpu")
+    cfg = CNMPConfig(device="cpu", state_tracks_action=True)  # the obstacle sim: SM = action, state reaches it
     policy = make_policy(cfg, ds_meta=meta).eval()
     pre, post = make_cnmp_pre_post_processors(cfg, meta.stats)
 
