@@ -304,6 +304,7 @@ class CNMPExecutor:
         self._user: list[UserCondition] = []
         self._user_tensors: tuple | None = None
         self._index_cache: dict = {}
+        self._slots_cache: tuple | None = None
         self.reset()
         self.set_conditions(policy.config.conditions)
 
@@ -389,22 +390,40 @@ class CNMPExecutor:
     def _user_context(self, n: int, device) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
         if not self._user:
             return None
-        if self._user_tensors is None or self._user_tensors[0].device != torch.device(device):
+        key = self._normalizer_key()
+        if self._user_tensors is None or self._user_tensors[0].device != torch.device(device) or \
+                self._user_tensors[3] != key:
             norm = self.policy.normalizer
             norm.require()
             phase = torch.tensor([u.phase for u in self._user], dtype=torch.float32, device=device)
             raw = torch.from_numpy(np.stack([u.values for u in self._user])).to(device)
             mask = torch.from_numpy(np.stack([u.mask for u in self._user])).to(device)
             values = torch.where(mask > 0.5, norm.sm(torch.nan_to_num(raw)), torch.zeros_like(raw))
-            self._user_tensors = (phase, values, mask)
-        phase, values, mask = self._user_tensors
+            self._user_tensors = (phase, values, mask, key)
+        phase, values, mask, _ = self._user_tensors
         k = phase.shape[0]
         return (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
                 torch.ones(n, k, dtype=torch.bool, device=device))
 
     def condition_slots(self, batch: dict[str, Tensor]):
-        d = self.config.sm_dim
+        """The ``environment_state`` slots as context points (phase, normalized values, mask, valid); an env
+        writes the same slots every step of an episode, so the last decoding is reused while they are equal."""
         env = batch[OBS_ENV_STATE]
+        cached, key = self._slots_cache, self._normalizer_key()
+        if cached is not None and cached[2] == key and cached[0].shape == env.shape and \
+                cached[0].device == env.device and torch.equal(cached[0], env):
+            return cached[1]
+        out = self._decode_slots(env)
+        self._slots_cache = (env.clone(), out, key)
+        return out
+
+    def _normalizer_key(self) -> tuple:
+        """Changes whenever the SM statistics do (cached normalized conditions are then rebuilt)."""
+        n = self.policy.normalizer
+        return (n.sm_mean.data_ptr(), n.sm_mean._version, n.sm_std.data_ptr(), n.sm_std._version)
+
+    def _decode_slots(self, env: Tensor):
+        d = self.config.sm_dim
         present, c_phase, c_values, c_mask = decode_conditions(env, d)
         given = present > 0.5
         check_finite(OBS_ENV_STATE + " (flags, phases, masks)", torch.stack([present, c_phase], -1))
