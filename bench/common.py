@@ -14,7 +14,8 @@ CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pre
 API_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "n_max_context", "m_max_targets", "context_in_targets",
               "draws_per_sample", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
               "feedback_dims", "tracking_dims", "pd_dims", "pd_kp", "pd_kd", "phase_stop_threshold")
-"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer, execution)."""
+"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer; the execution
+names are the old top-level aliases; a config's ``execution`` section is passed as a whole)."""
 
 
 def policy_batch(pre, obs: dict) -> dict:
@@ -57,8 +58,13 @@ def api_model(cfg: dict | None = None):
     """A ``CNMPModel`` with the training config's model, sampling and learning-rate settings."""
     from lerobot_cnmp.api import CNMPModel
 
+    from lerobot_cnmp.executor import ExecutionConfig
+
     pol = (cfg or config())["policy"]
-    return CNMPModel(**{k: pol[k] for k in API_FIELDS if k in pol})
+    kw = {k: pol[k] for k in API_FIELDS if k in pol}
+    if "execution" in pol:  # the configs' execution settings (lerobot_cnmp.executor.ExecutionConfig)
+        kw["execution"] = ExecutionConfig(**pol["execution"])
+    return CNMPModel(**kw)
 
 
 def checkpoint_or_train(path: str | Path | None, out_dir: Path, steps: int | None = None,
