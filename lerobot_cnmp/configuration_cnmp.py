@@ -65,6 +65,10 @@ class CNMPConfig(PreTrainedConfig):
             same representation r and a gate π(r) = softmax(W r + b) over them, trained with
             Σ_k π_k NLL_k + the two entropy terms below (``CNMP.mixture_loss``). Use it when the
             demonstrations have modes the conditions do not decide (a single decoder averages them).
+        mixture_nll: How the experts' NLLs combine through the gate (``CNMP.mixture_loss``): ``"cnep"``
+            (CNEP's expected NLL Σ_k π_k NLL_k: the gate learns a hard choice) or ``"likelihood"`` (the
+            mixture likelihood -log Σ_k π_k Π_q N_k: π is a posterior, e.g. 1/4 each for four modes that
+            the context does not tell apart).
         gate_entropy_coef: Weight of the per-episode gate entropy mean_b H(π_b) / log K, *added* to the loss:
             each context should commit to one expert. CNEP's 7.553, relative to its NLL weight: 0.62.
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
@@ -155,6 +159,7 @@ class CNMPConfig(PreTrainedConfig):
     n_experts: int = 1
     gate_entropy_coef: float = 0.62
     batch_entropy_coef: float = 0.88
+    mixture_nll: str = "cnep"
     expert_selection: str = "most_probable"
     mode_switch_margin: float = 0.3
 
@@ -236,6 +241,8 @@ class CNMPConfig(PreTrainedConfig):
         if self.gate_entropy_coef < 0 or self.batch_entropy_coef < 0:
             raise ValueError(f"gate_entropy_coef and batch_entropy_coef must be >= 0, got {self.gate_entropy_coef}, "
                              f"{self.batch_entropy_coef}")
+        if self.mixture_nll not in ("cnep", "likelihood"):
+            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):
             raise ValueError(f"expert_selection must be 'most_probable' or 'sample', got {self.expert_selection!r}")
         if not 0.0 <= self.mode_switch_margin < 1.0:

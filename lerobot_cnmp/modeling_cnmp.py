@@ -224,13 +224,17 @@ class CNMP(nn.Module):
         n_experts: int = 1,
         gate_entropy_coef: float = 0.62,
         batch_entropy_coef: float = 0.88,
+        mixture_nll: str = "cnep",
     ):
         super().__init__()
         if int(n_experts) != n_experts or n_experts < 1:
             raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {n_experts}")
         self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
         self.n_experts = int(n_experts)
+        if mixture_nll not in ("cnep", "likelihood"):
+            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {mixture_nll!r}")
         self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
+        self.mixture_nll = mixture_nll
         self.register_buffer(
             "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
         )
@@ -353,33 +357,49 @@ class CNMP(nn.Module):
         w = targets.valid[:, None, :].to(per_dim.dtype)
         return (per_dim.sum(dim=-1) * w).sum(dim=-1) / w.sum(dim=-1).clamp(min=1.0)
 
-    def mixture_loss(self, nll_bk: Tensor, probs: Tensor) -> tuple[Tensor, dict]:
-        """CNEP's loss (``models/cnep.py`` of yildirimyigit/cnep):
+    def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor) -> tuple[Tensor, dict]:
+        """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
+        the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
 
-            L = mean_b Σ_k π_bk NLL_bk                       -- each expert's NLL, weighted by the gate
+            L = NLL_mix
                 + gate_entropy_coef  · mean_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
                 - batch_entropy_coef · H(mean_b π_b) / log K  -- high batch entropy: use every expert
 
-        The first term is the expected NLL under the gate, not the mixture likelihood -log Σ_k π_k N_k: its
-        gradient moves the gate's whole mass to the expert that explains the episode best (a hard choice,
-        what execution commits to) and trains each expert only on the episodes the gate gives it. Entropies
-        are divided by log K (1 for a uniform gate). The defaults are CNEP's: its loss is
+        with NLL_mix, by ``mixture_nll``:
+
+        * ``"cnep"`` (CNEP's ``models/cnep.py``, yildirimyigit/cnep): mean_b Σ_k π_bk NLL_bk, the expected NLL
+          under the gate. Its gradient moves the gate's whole mass to the expert that explains the episode
+          best (a hard choice, what execution commits to) and trains each expert on the episodes the gate
+          gives it. Where the context does not decide the mode it still commits (π is not a posterior).
+        * ``"likelihood"``: -mean_b (1/n_b) log Σ_k π_bk Π_q N(y_bq | μ_bkq, σ_bkq), the mixture likelihood of
+          the episode's queries (one mode per episode, so the product over queries sits inside the sum).
+          Each expert is trained with the posterior responsibility of the episode; π is calibrated: a
+          context shared by M modes gets π ≈ 1/M on them (the weights task before the grasp).
+
+        Entropies are divided by log K (1 for a uniform gate). The defaults are CNEP's: its loss is
         16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
         (``scale_coefs``, mean over decoders); divided by its NLL weight 8.405 this is the form above with
         7.553·log 2/8.405 = 0.62 and 10.672·log 2/8.405 = 0.88, for any K. (CNEP averages its NLL over SM
         dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.)"""
         log_k = float(np.log(self.n_experts))
-        nll = (probs * nll_bk).sum(dim=-1).mean()
+        expected = (probs * nll_bk).sum(dim=-1).mean()
+        if self.mixture_nll == "cnep":
+            nll = expected
+        else:
+            n = n_queries.to(nll_bk.dtype).clamp(min=1.0)
+            log_lik = torch.logsumexp(probs.clamp(min=1e-12).log() - nll_bk * n[:, None], dim=-1)  # log Σ π Π N
+            nll = -(log_lik / n).mean()
         ind_entropy = entropy(probs).mean() / log_k
         batch_entropy = entropy(probs.mean(dim=0)) / log_k
         loss = nll + self.gate_entropy_coef * ind_entropy - self.batch_entropy_coef * batch_entropy
-        return loss, {"nll": nll.item(), "gate_entropy": ind_entropy.item(), "batch_entropy": batch_entropy.item()}
+        return loss, {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
+                      "batch_entropy": batch_entropy.item()}
 
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
         if self.n_experts > 1:
             means, stds, probs = self.mixture(context, targets.phase)
-            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs)
+            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1))
             mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
         else:
             mean, std = self(context, targets.phase)
@@ -535,7 +555,9 @@ class CNMPPolicy(PreTrainedPolicy):
     3. outputs the predicted ``action`` dims at τ (joint layout), or the PD command s + kp·e + kd·(e - e_prev),
        e = μ(τ) - s (tied layout), in the dataset's units.
     γ and the conv encoder's image are read at the first step of an episode, as training reads them at the
-    episode's first frame.
+    episode's first frame. With a mixture (``n_experts`` > 1), step 3 uses the expert that
+    :class:`~lerobot_cnmp.modes.ModeSelector` follows: chosen at the first step, switched only when
+    re-conditioning makes another expert more probable by ``mode_switch_margin``.
     """
 
     config_class = CNMPConfig
@@ -566,6 +588,7 @@ class CNMPPolicy(PreTrainedPolicy):
             n_experts=config.n_experts,
             gate_entropy_coef=config.gate_entropy_coef,
             batch_entropy_coef=config.batch_entropy_coef,
+            mixture_nll=config.mixture_nll,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec

@@ -420,19 +420,31 @@ def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net
             torch.testing.assert_close(a, b)  # every expert's μ and σ, and the gate
 
 
-def test_mixture_loss_is_cnep_form(mixture_net):
+@pytest.mark.parametrize("form", ["cnep", "likelihood"])
+def test_mixture_loss_forms(mixture_net, form):
+    """cnep: Σ_k π_k NLL_k; likelihood: -(1/n) log Σ_k π_k Π_q N_kq; plus the two normalized entropy terms."""
     ctx = random_context(b=4, g=1)
     targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
     targets.valid[:, 0] = True
-    loss, info = mixture_net.training_loss(ctx, targets)
+    mixture_net.mixture_nll = form
+    try:
+        loss, info = mixture_net.training_loss(ctx, targets)
+    finally:
+        mixture_net.mixture_nll = "cnep"
     means, stds, probs = mixture_net.mixture(ctx, targets.phase)
     nll_bk = torch.stack([torch.stack([
         CNMP.nll(means[b:b + 1, k], stds[b:b + 1, k], Targets(targets.phase[b:b + 1], targets.values[b:b + 1],
                                                                targets.valid[b:b + 1])) for k in range(3)])
         for b in range(4)])  # Eq. 1 of expert k on episode b
+    n = targets.valid.sum(-1).float()
+    if form == "cnep":
+        nll = (probs * nll_bk).sum(-1).mean()
+    else:
+        nll = -(torch.log((probs * torch.exp(-nll_bk * n[:, None])).sum(-1)) / n).mean()
     h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
-    want = ((probs * nll_bk).sum(-1).mean() + 0.62 * h(probs).mean() / np.log(3) - 0.88 * h(probs.mean(0)) / np.log(3))
+    want = nll + 0.62 * h(probs).mean() / np.log(3) - 0.88 * h(probs.mean(0)) / np.log(3)
     torch.testing.assert_close(loss, want)
+    assert info["nll"] == pytest.approx(nll.item(), rel=1e-5)
     assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
 
 
@@ -445,7 +457,8 @@ def test_bad_number_of_experts_is_a_clear_error(k):
 
 
 @pytest.mark.parametrize("field, value", [("gate_entropy_coef", -0.1), ("batch_entropy_coef", -1.0),
-                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0)])
+                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0),
+                                          ("mixture_nll", "mse")])
 def test_bad_mixture_settings(field, value):
     with pytest.raises(ValueError, match=field):
         CNMPConfig(**{field: value})
