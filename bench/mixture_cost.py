@@ -63,7 +63,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> list[
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    p.add_argument("--mixture_nll", default="cnep", choices=("cnep", "likelihood"))
+    p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--every", type=int, default=250)
     p.add_argument("--validation", type=int, default=40, help="validation tasks")

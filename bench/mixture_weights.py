@@ -44,6 +44,7 @@ def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
+    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", default=None, help="write the fitted checkpoint here")
@@ -61,6 +62,8 @@ def main() -> dict:
     data = load_demos(REPO / cfg["dataset"]["root"])
     model = api_model(cfg)
     model.overrides.update(n_experts=args.experts, mixture_nll=args.mixture_nll)
+    if args.gate_entropy_coef is not None:
+        model.overrides["gate_entropy_coef"] = args.gate_entropy_coef
     t0 = time.perf_counter()
     model.fit(data["demos"], task_params=data["task_params"], steps=args.steps or cfg["steps"],
               batch_size=cfg["batch_size"], seed=args.seed, progress=False)
@@ -81,13 +84,14 @@ def main() -> dict:
                 states.append(obs["agent_pos"])
             start = Condition(0.0, tuple(float(v) for v in states[0]))
             lifted = Condition(AFTER_LIFT_STEP / 199, tuple(float(v) for v in states[AFTER_LIFT_STEP + 1]))
-            _, _, before = model.predict_mixture([1.0], [start])
+            means_before, _, before = model.predict_mixture([1.0], [start])
+            zones_before = [int(np.argmin(np.linalg.norm(ZONE_XY - m[0, :2], axis=1))) for m in means_before]
             means, _, after = model.predict_mixture([1.0], [start, lifted])
             k = int(after.argmax())
             zone = int(np.argmin(np.linalg.norm(ZONE_XY - means[k, 0, :2], axis=1)))
             truth = 2 * shape + int(mass > HEAVY_THRESHOLD)
             rows.append({"shape": SHAPES[shape][0], "mass": mass, "truth": truth, "zone": zone, "expert": k,
-                         "before": before, "after": after})
+                         "before": before, "zones_before": zones_before, "after": after})
 
     print(f"{'shape':<10}{'mass kg':>9}{'zone':>6}{'pred':>6}  {'π before the grasp':<28}{'π after the lift'}")
     fmt = lambda v: "[" + " ".join(f"{x:.2f}" for x in v) + "]"  # noqa: E731
@@ -98,12 +102,14 @@ def main() -> dict:
     # which expert each true zone is given to after the lift
     zone_expert = {z: sorted({r["expert"] for r in rows if r["truth"] == z}) for z in range(4)}
     res = {
-        "mixture_experts": args.experts, "mixture_nll": args.mixture_nll, "fit_s": round(fit_s, 1),
+        "mixture_experts": args.experts, "mixture_nll": args.mixture_nll,
+        "gate_entropy_coef": model.config.gate_entropy_coef, "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
         "gate_before_grasp_mean": [round(float(v), 3) for v in before.mean(0)],
         "gate_before_grasp_max_abs_dev_from_uniform": round(float(np.abs(before - 1 / args.experts).max()), 3),
         "after_lift_max_gate_above_0.9_pct": round(100.0 * float((after_max > 0.9).mean()), 1),
         "after_lift_max_gate_min": round(float(after_max.min()), 3),
+        "expert_zones_before_grasp": sorted({tuple(r["zones_before"]) for r in rows}),
         "committed_expert_zone_accuracy_pct": round(100.0 * np.mean([r["zone"] == r["truth"] for r in rows]), 1),
         "experts_per_zone": zone_expert,
     }
@@ -111,7 +117,8 @@ def main() -> dict:
           f"{res['gate_before_grasp_max_abs_dev_from_uniform']}); after the lift: max π > 0.9 on "
           f"{res['after_lift_max_gate_above_0.9_pct']} % of {len(rows)} unseen masses (min {res['after_lift_max_gate_min']}); "
           f"the committed expert ends in the true zone on {res['committed_expert_zone_accuracy_pct']} %; "
-          f"experts per zone {zone_expert}; fit {fit_s:.0f} s")
+          f"experts per zone {zone_expert}; zone of each expert's end before the grasp "
+          f"{res['expert_zones_before_grasp']}; fit {fit_s:.0f} s")
     print(json.dumps(res))
     return res
 

@@ -90,6 +90,9 @@ def main() -> dict:
     p.add_argument("--batch_size", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
+    p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
+    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--plot", default=str(REPO / "outputs" / "sine_cnmp_vs_promp.png"))
     p.add_argument("--mixture_plot", default=str(REPO / "outputs" / "sine_mixture.png"))
     args = p.parse_args()
@@ -113,7 +116,9 @@ def main() -> dict:
     mixture, mix_fit_s = None, None
     if args.experts > 0:
         t0 = time.perf_counter()
-        mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts).fit(
+        settings = {k: getattr(args, k) for k in ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")
+                    if getattr(args, k) is not None}
+        mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts, **settings).fit(
             demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
         )
         mix_fit_s = time.perf_counter() - t0
@@ -130,7 +135,9 @@ def main() -> dict:
             ("ProMP 1 sample", "promp_sample", promp_samples)]
     if mixture is not None:
         rows.insert(1, (f"mixture K={args.experts}", "mixture", [mixture.predict(x, c)[0][:, 0] for c in sets]))
-        res.update(mixture_experts=args.experts, mixture_fit_s=round(mix_fit_s, 1))
+        res.update(mixture_experts=args.experts, mixture_fit_s=round(mix_fit_s, 1),
+                   mixture_settings={k: getattr(mixture.config, k) for k in
+                                     ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")})
     print(f"{'method':<16}{'error (mean ± std)':>22}{'published':>11}")
     for label, key, traj in rows:
         mean, std = score(traj, demos)

@@ -222,9 +222,9 @@ class CNMP(nn.Module):
         min_std: float = 0.01,
         phase_frequencies: int = 0,
         n_experts: int = 1,
-        gate_entropy_coef: float = 0.62,
+        gate_entropy_coef: float = 0.2,
         batch_entropy_coef: float = 0.88,
-        mixture_nll: str = "cnep",
+        mixture_nll: str = "likelihood",
     ):
         super().__init__()
         if int(n_experts) != n_experts or n_experts < 1:
@@ -376,11 +376,13 @@ class CNMP(nn.Module):
           Each expert is trained with the posterior responsibility of the episode; π is calibrated: a
           context shared by M modes gets π ≈ 1/M on them (the weights task before the grasp).
 
-        Entropies are divided by log K (1 for a uniform gate). The defaults are CNEP's: its loss is
+        Entropies are divided by log K (1 for a uniform gate). CNEP's coefficients: its loss is
         16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
         (``scale_coefs``, mean over decoders); divided by its NLL weight 8.405 this is the form above with
         7.553·log 2/8.405 = 0.62 and 10.672·log 2/8.405 = 0.88, for any K. (CNEP averages its NLL over SM
-        dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.)"""
+        dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.) The
+        defaults, the likelihood with gate_entropy_coef 0.2 and CNEP's 0.88, are what the sine and weights
+        benchmarks favoured (``CNMPConfig``, README "Mixture decoder")."""
         log_k = float(np.log(self.n_experts))
         expected = (probs * nll_bk).sum(dim=-1).mean()
         if self.mixture_nll == "cnep":

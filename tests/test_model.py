@@ -384,7 +384,7 @@ def test_mixture_shapes_gate_sums_to_one_and_decode_is_the_most_probable_expert(
     torch.testing.assert_close(mean, means[torch.arange(5), k])
     torch.testing.assert_close(std, stds[torch.arange(5), k])
     # each expert is its own network: the experts' predictions differ
-    assert float((means[:, 0] - means[:, 1]).abs().max()) > 1e-3
+    assert float((means[:, 0] - means[:, 1]).abs().max().detach()) > 1e-3
 
 
 def test_mixture_experts_equal_the_plain_networks(mixture_net):
@@ -426,11 +426,12 @@ def test_mixture_loss_forms(mixture_net, form):
     ctx = random_context(b=4, g=1)
     targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
     targets.valid[:, 0] = True
+    default = mixture_net.mixture_nll
     mixture_net.mixture_nll = form
     try:
         loss, info = mixture_net.training_loss(ctx, targets)
     finally:
-        mixture_net.mixture_nll = "cnep"
+        mixture_net.mixture_nll = default
     means, stds, probs = mixture_net.mixture(ctx, targets.phase)
     nll_bk = torch.stack([torch.stack([
         CNMP.nll(means[b:b + 1, k], stds[b:b + 1, k], Targets(targets.phase[b:b + 1], targets.values[b:b + 1],
@@ -442,7 +443,9 @@ def test_mixture_loss_forms(mixture_net, form):
     else:
         nll = -(torch.log((probs * torch.exp(-nll_bk * n[:, None])).sum(-1)) / n).mean()
     h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
-    want = nll + 0.62 * h(probs).mean() / np.log(3) - 0.88 * h(probs.mean(0)) / np.log(3)
+    c_ind, c_batch = mixture_net.gate_entropy_coef, mixture_net.batch_entropy_coef
+    assert (c_ind, c_batch) == (CNMPConfig.gate_entropy_coef, CNMPConfig.batch_entropy_coef) == (0.2, 0.88)
+    want = nll + c_ind * h(probs).mean() / np.log(3) - c_batch * h(probs.mean(0)) / np.log(3)
     torch.testing.assert_close(loss, want)
     assert info["nll"] == pytest.approx(nll.item(), rel=1e-5)
     assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
