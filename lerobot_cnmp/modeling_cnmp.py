@@ -7,7 +7,8 @@ Read top-down:
 2. ``CNMP`` -- pure torch:  r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i]);  r = mean_i r_i  (``aggregate``);
    (μ_q, σ_q) = Q([t_q, γ, r])  (``decode``);  loss = -log N(SM(t_q) | μ_q, σ_q)  (``nll``, Eq. 1).
    With ``n_experts`` K > 1 (CNEP, Yildirim & Ugur 2024): K query networks Q_1..Q_K over the same r and a gate
-   π = softmax(W_g r + b_g); loss = Σ_k π_k NLL_k + entropy terms (``mixture_loss``); see ``CNMP``.
+   π = softmax(W_g r + b_g); loss = -log Σ_k π_k Π_q N_k (or CNEP's Σ_k π_k NLL_k) + gate entropy terms
+   (``mixture_loss``); see ``CNMP``.
 3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2),
    and executes online in ``select_action`` (condition on goals + current state, predict the next SM).
 
