@@ -6,6 +6,9 @@ Read top-down:
    in the batch, n ~ U{1..n_max} observations (t_i, SM(t_i)) and m ~ U{1..m_max} queries (t_q, SM(t_q)).
 2. ``CNMP`` -- pure torch:  r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i]);  r = mean_i r_i  (``aggregate``);
    (μ_q, σ_q) = Q([t_q, γ, r])  (``decode``);  loss = -log N(SM(t_q) | μ_q, σ_q)  (``nll``, Eq. 1).
+   With ``n_experts`` K > 1 (CNEP, Yildirim & Ugur 2024): K query networks Q_1..Q_K over the same r and a gate
+   π = softmax(W_g r + b_g); loss = -log Σ_k π_k Π_q N_k (or CNEP's Σ_k π_k NLL_k) + gate entropy terms
+   (``mixture_loss``); see ``CNMP``.
 3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2),
    and executes online in ``select_action`` (condition on goals + current state, predict the next SM).
 
@@ -27,6 +30,7 @@ from lerobot.utils.constants import OBS_ENV_STATE
 from lerobot_cnmp.bank import EpisodeBank
 from lerobot_cnmp.conditions import decode_conditions
 from lerobot_cnmp.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.modes import ModeSelector
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -178,8 +182,37 @@ class ConvEncoder(nn.Module):
         return self.project(self.conv(images).flatten(1))
 
 
+class ExpertMLPs(nn.Module):
+    """K query networks Q_1..Q_K of one shape, their weights stacked so that each layer of all K experts is
+    one batched matmul: ``weights[l]`` [K, out, in], ``biases[l]`` [K, out] (each expert initialized as
+    ``nn.Linear`` initializes itself). ReLU between layers, none after the last, as :func:`mlp`."""
+
+    def __init__(self, n_experts: int, in_dim: int, widths: tuple[int, ...]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for w in widths:
+            layers = [nn.Linear(in_dim, w) for _ in range(n_experts)]
+            self.weights.append(nn.Parameter(torch.stack([m.weight.data for m in layers])))
+            self.biases.append(nn.Parameter(torch.stack([m.bias.data for m in layers])))
+            in_dim = w
+
+    def forward(self, h: Tensor, start: int = 0) -> Tensor:
+        """[K, N, in] -> [K, N, out]: layers ``start`` on (``h``: layer start - 1's output, before its ReLU)."""
+        for i in range(start, len(self.weights)):
+            if i > 0:
+                h = F.relu(h)
+            h = torch.baddbmm(self.biases[i][:, None, :], h, self.weights[i].transpose(1, 2))
+        return h
+
+
 class CNMP(nn.Module):
-    """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch)."""
+    """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch).
+
+    ``n_experts`` K > 1 is CNEP's mixture decoder (Yildirim & Ugur, "Conditional Neural Expert Processes",
+    arXiv 2402.08424): K query networks ("experts") Q_k over the same representation r and a gate
+    π(r) = softmax(W_g r + b_g) over them (``decoders``, ``gate``). The experts predict (μ_k, σ_k) each; the
+    gate says which of them the context r belongs to. ``forward`` / ``decode`` then return the most probable
+    expert's (μ, σ); ``mixture`` returns all of them with π. K = 1 is the plain CNMP (``decoder``)."""
 
     def __init__(
         self,
@@ -189,16 +222,36 @@ class CNMP(nn.Module):
         decoder_layers: tuple[int, ...] = (128, 128, 128),
         min_std: float = 0.01,
         phase_frequencies: int = 0,
+        n_experts: int = 1,
+        gate_entropy_coef: float = 0.2,
+        batch_entropy_coef: float = 0.88,
+        mixture_nll: str = "likelihood",
         nll_beta: float = 0.0,
     ):
         super().__init__()
-        self.sm_dim, self.task_dim, self.min_std, self.nll_beta = sm_dim, task_dim, min_std, nll_beta
+        if int(n_experts) != n_experts or n_experts < 1:
+            raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {n_experts}")
+        self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
+        self.n_experts = int(n_experts)
+        if mixture_nll not in ("cnep", "likelihood"):
+            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {mixture_nll!r}")
+        if nll_beta and self.n_experts > 1:
+            raise ValueError(f"nll_beta (β-NLL) applies to the single decoder: use n_experts=1 or nll_beta=0, got "
+                             f"n_experts={n_experts}, nll_beta={nll_beta}")
+        self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
+        self.mixture_nll = mixture_nll
+        self.nll_beta = nll_beta
         self.register_buffer(
             "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
         )
         t_dim = 1 + 2 * phase_frequencies
         self.encoder = mlp(t_dim + task_dim + 2 * sm_dim, tuple(encoder_layers))
-        self.decoder = mlp(t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+        q_in, q_widths = t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim)
+        if self.n_experts == 1:  # the plain CNMP: today's parameter names, so its checkpoints load
+            self.decoder = mlp(q_in, q_widths)
+        else:  # CNEP: K experts and the gate over them, both reading the same r
+            self.decoders = ExpertMLPs(self.n_experts, q_in, q_widths)
+            self.gate = nn.Linear(encoder_layers[-1], self.n_experts)
 
     def phase_features(self, t: Tensor) -> Tensor:
         """[..., 1 + 2K]: t itself, plus sin / cos of k·π·t for k = 1..K (none by default, as in the paper)."""
@@ -239,10 +292,14 @@ class CNMP(nn.Module):
 
     def decode(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(μ, σ) = Q(t_q, γ, r) for every query phase, each [B, M, D]; σ = min_std + softplus(.).
+        With K > 1 experts: the most probable expert's (μ_k*, σ_k*), k* = argmax_k π_k(r).
 
         Q's first layer is linear in its input [t_q, γ, r], so it is computed as W_t·t_q + (W_γr·[γ, r] + b):
         the second term once per episode, not once per query (a 200-query trajectory costs little more than
         its last layers)."""
+        if self.n_experts > 1:
+            means, stds = self.decode_experts(r, query_phase, task_params)
+            return pick_expert(means, stds, self.gate_probs(r).argmax(dim=-1))
         first = self.decoder[0]
         t_dim = 1 + 2 * self.frequencies.numel()
         per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
@@ -253,12 +310,42 @@ class CNMP(nn.Module):
         mean, raw = out.split(self.sm_dim, dim=-1)
         return mean, self.min_std + F.softplus(raw)
 
+    def gate_probs(self, r: Tensor) -> Tensor:
+        """π(r) = softmax(W_g r + b_g): each expert's probability of being the context's mode, [B, K]."""
+        if self.n_experts == 1:
+            return torch.ones(r.shape[0], 1, dtype=r.dtype, device=r.device)
+        return torch.softmax(self.gate(r), dim=-1)
+
+    def decode_experts(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor]:
+        """(μ_k, σ_k) = Q_k(t_q, γ, r) of every expert k, each [B, K, M, D] (first layer split as in ``decode``)."""
+        if self.n_experts == 1:
+            mean, std = self.decode(r, query_phase, task_params)
+            return mean[:, None], std[:, None]
+        q = self.decoders
+        t_dim = 1 + 2 * self.frequencies.numel()
+        w0, b0 = q.weights[0], q.biases[0]  # [K, H, in], [K, H]
+        per_episode = self._inputs([], [r[:, None, :]], task_params, 1)[:, 0]  # [B, G + R]
+        per_episode = torch.einsum("bi,khi->kbh", per_episode, w0[:, :, t_dim:]) + b0[:, None, :]  # [K, B, H]
+        per_query = torch.einsum("bmi,khi->kbmh", self.phase_features(query_phase), w0[:, :, :t_dim])
+        h = per_episode[:, :, None, :] + per_query  # [K, B, M, H]
+        k, b, m, width = h.shape
+        out = q(h.reshape(k, b * m, width), start=1).reshape(k, b, m, 2 * self.sm_dim).transpose(0, 1)
+        mean, raw = out.split(self.sm_dim, dim=-1)
+        return mean, self.min_std + F.softplus(raw)
+
     def condition(self, context: Context) -> Tensor:
         """The representation r of a context (encode + aggregate)."""
         return self.aggregate(self.encode(context), context.valid)
 
     def forward(self, context: Context, query_phase: Tensor) -> tuple[Tensor, Tensor]:
         return self.decode(self.condition(context), query_phase, context.task_params)
+
+    def mixture(self, context: Context, query_phase: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Every expert's prediction and probability: μ_k, σ_k [B, K, M, D] and π [B, K] (K = 1: π = 1)."""
+        r = self.condition(context)
+        means, stds = self.decode_experts(r, query_phase, context.task_params)
+        return means, stds, self.gate_probs(r)
 
     @staticmethod
     def nll(mean: Tensor, std: Tensor, targets: Targets, beta: float = 0.0) -> Tensor:
@@ -271,15 +358,80 @@ class CNMP(nn.Module):
         w = targets.valid.to(per_query.dtype)
         return (per_query * w).sum() / w.sum().clamp(min=1.0)
 
+    @staticmethod
+    def nll_per_expert(means: Tensor, stds: Tensor, targets: Targets) -> Tensor:
+        """NLL_bk: Eq. 1 of expert k on episode b, summed over SM dims and averaged over its valid queries, [B, K]."""
+        y = targets.values[:, None]
+        per_dim = 0.5 * ((y - means) / stds) ** 2 + stds.log() + 0.5 * np.log(2 * np.pi)
+        w = targets.valid[:, None, :].to(per_dim.dtype)
+        return (per_dim.sum(dim=-1) * w).sum(dim=-1) / w.sum(dim=-1).clamp(min=1.0)
+
+    def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor) -> tuple[Tensor, dict]:
+        """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
+        the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
+
+            L = NLL_mix
+                + gate_entropy_coef  · mean_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
+                - batch_entropy_coef · H(mean_b π_b) / log K  -- high batch entropy: use every expert
+
+        with NLL_mix, by ``mixture_nll``:
+
+        * ``"cnep"`` (CNEP's ``models/cnep.py``, yildirimyigit/cnep): mean_b Σ_k π_bk NLL_bk, the expected NLL
+          under the gate. Its gradient moves the gate's whole mass to the expert that explains the episode
+          best (a hard choice, what execution commits to) and trains each expert on the episodes the gate
+          gives it. Where the context does not decide the mode it still commits (π is not a posterior).
+        * ``"likelihood"``: -mean_b (1/n_b) log Σ_k π_bk Π_q N(y_bq | μ_bkq, σ_bkq), the mixture likelihood of
+          the episode's queries (one mode per episode, so the product over queries sits inside the sum).
+          Each expert is trained with the posterior responsibility of the episode; π is calibrated: a
+          context shared by M modes gets π ≈ 1/M on them (the weights task before the grasp).
+
+        Entropies are divided by log K (1 for a uniform gate). CNEP's coefficients: its loss is
+        16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
+        (``scale_coefs``, mean over decoders); divided by its NLL weight 8.405 this is the form above with
+        7.553·log 2/8.405 = 0.62 and 10.672·log 2/8.405 = 0.88, for any K. (CNEP averages its NLL over SM
+        dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.) The
+        defaults, the likelihood with gate_entropy_coef 0.2 and CNEP's 0.88, are what the sine and weights
+        benchmarks favoured (``CNMPConfig``, README "Mixture decoder")."""
+        log_k = float(np.log(self.n_experts))
+        expected = (probs * nll_bk).sum(dim=-1).mean()
+        if self.mixture_nll == "cnep":
+            nll = expected
+        else:
+            n = n_queries.to(nll_bk.dtype).clamp(min=1.0)
+            log_lik = torch.logsumexp(probs.clamp(min=1e-12).log() - nll_bk * n[:, None], dim=-1)  # log Σ π Π N
+            nll = -(log_lik / n).mean()
+        ind_entropy = entropy(probs).mean() / log_k
+        batch_entropy = entropy(probs.mean(dim=0)) / log_k
+        loss = nll + self.gate_entropy_coef * ind_entropy - self.batch_entropy_coef * batch_entropy
+        return loss, {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
+                      "batch_entropy": batch_entropy.item()}
+
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
-        mean, std = self(context, targets.phase)
-        loss = self.nll(mean, std, targets, self.nll_beta)
+        if self.n_experts > 1:
+            means, stds, probs = self.mixture(context, targets.phase)
+            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1))
+            mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
+        else:
+            mean, std = self(context, targets.phase)
+            loss = self.nll(mean, std, targets, self.nll_beta)
+            info = {"nll": loss.item()}
         with torch.no_grad():
             w = targets.valid[..., None].to(mean.dtype)
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
-        return loss, {"nll": loss.item(), "mae": mae.item(), "std": mean_std.item()}
+        return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
+
+
+def entropy(p: Tensor) -> Tensor:
+    """H(p) = -Σ_k p_k log p_k over the last dim (0 log 0 = 0)."""
+    return -(p * p.clamp(min=1e-12).log()).sum(dim=-1)
+
+
+def pick_expert(means: Tensor, stds: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+    """Expert ``k[b]``'s (μ, σ) of each episode b: [B, K, M, D] -> [B, M, D] each."""
+    idx = k.long()[:, None, None, None].expand(-1, 1, *means.shape[2:])
+    return means.gather(1, idx)[:, 0], stds.gather(1, idx)[:, 0]
 
 
 class NumpyCNMP:
@@ -291,6 +443,10 @@ class NumpyCNMP:
     whenever the weights change. ``tests/test_model.py`` checks it against :class:`CNMP`."""
 
     def __init__(self, model: CNMP):
+        if model.n_experts != 1:
+            raise ValueError(f"NumpyCNMP copies a single-decoder CNMP; this one has {model.n_experts} experts "
+                             "(a mixture executes with the torch model)")
+
         def layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
             return [(m.weight.detach().cpu().numpy().T.copy(), m.bias.detach().cpu().numpy().copy())
                     for m in seq if isinstance(m, nn.Linear)]
@@ -410,7 +566,9 @@ class CNMPPolicy(PreTrainedPolicy):
     3. outputs the predicted ``action`` dims at τ (joint layout), or the PD command s + kp·e + kd·(e - e_prev),
        e = μ(τ) - s (tied layout), in the dataset's units.
     γ and the conv encoder's image are read at the first step of an episode, as training reads them at the
-    episode's first frame.
+    episode's first frame. With a mixture (``n_experts`` > 1), step 3 uses the expert that
+    :class:`~lerobot_cnmp.modes.ModeSelector` follows: chosen at the first step, switched only when
+    re-conditioning makes another expert more probable by ``mode_switch_margin``.
     """
 
     config_class = CNMPConfig
@@ -438,6 +596,10 @@ class CNMPPolicy(PreTrainedPolicy):
             decoder_layers=config.decoder_layers,
             min_std=config.min_std,
             phase_frequencies=config.phase_frequencies,
+            n_experts=config.n_experts,
+            gate_entropy_coef=config.gate_entropy_coef,
+            batch_entropy_coef=config.batch_entropy_coef,
+            mixture_nll=config.mixture_nll,
             nll_beta=config.nll_beta,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
@@ -653,6 +815,7 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         self._error: Tensor | None = None  # previous PD error e, for the D term
         self._inputs: Tensor | None = None  # γ and image embeddings read at the first step
         self._has_inputs = False
+        self._modes = ModeSelector(self.config.mode_switch_margin, self.config.expert_selection)  # K > 1
 
     @property
     def phase_step(self) -> float:
@@ -825,7 +988,8 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
     def executor(self):
         """The network that execution runs: the numpy copy on CPU (``numpy_execution``, rebuilt whenever a
         weight changes), else the torch model."""
-        if not self.config.numpy_execution or self.training or self.model.frequencies.device.type != "cpu":
+        if (not self.config.numpy_execution or self.training or self.model.frequencies.device.type != "cpu"
+                or self.model.n_experts > 1):
             return self.model
         key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
         if self._numpy_key != key:
@@ -833,8 +997,13 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         return self._numpy_model
 
     def _predict(self, batch: dict[str, Tensor], sensed: Tensor | None, queries: Tensor) -> tuple[Tensor, Tensor]:
-        """(μ, σ) of the SM at ``queries`` [B, M] (normalized units), [B, M, D] each."""
-        return self.executor()(self.execution_context(batch, self._phase, sensed), queries)
+        """(μ, σ) of the SM at ``queries`` [B, M] (normalized units), [B, M, D] each. With K > 1 experts: those
+        of the expert the mode rule (:mod:`lerobot_cnmp.modes`) follows, from the gate after re-conditioning."""
+        context = self.execution_context(batch, self._phase, sensed)
+        if self.model.n_experts == 1:
+            return self.executor()(context, queries)
+        means, stds, probs = self.model.mixture(context, queries)
+        return pick_expert(means, stds, self._modes(probs))
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
