@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CHECKPOINT, REPO, make_sim  # noqa: E402
+from common import CHECKPOINT, REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance  # noqa: E402
 
 
 def obstacle_sim(policy, perturbation: str, n_envs: int, **env_kwargs):
@@ -101,7 +101,7 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(CHECKPOINT))
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_obstacle2d")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--batch", type=int, default=10)
     p.add_argument("--seed", type=int, default=200000)
@@ -110,7 +110,8 @@ def main() -> dict:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from lerobot_cnmp.api import load_pretrained
 
-    policy, pre, post = load_pretrained(args.checkpoint)
+    ckpt = checkpoint_from_args(args, "cnmp_obstacle2d")
+    policy, pre, post = load_pretrained(ckpt)
     res, errs = {}, {}
     for pert in ("none", "push", "hold"):
         for fb in (True, False):
@@ -122,7 +123,7 @@ def main() -> dict:
         print(f"{pert:<14}{mode.replace('_', ' '):<12}{res[key]:>10.1f}{errs[key]:>10.3f}")
     plot = plot_held_episode(policy, pre, post, Path(args.plot), args.seed)
     print(f"plot of a held episode: {plot}")
-    print(json.dumps({**{k: round(v, 1) for k, v in res.items()}, "episodes": args.episodes,
+    print(json.dumps({**{k: round(v, 1) for k, v in res.items()}, "episodes": args.episodes, "checkpoint": provenance(ckpt),
                       "goal_error": {k: round(v, 4) for k, v in errs.items()}}))
     return res
 
