@@ -116,6 +116,24 @@ def _obstacle2d_spec() -> SimSpec:
     )
 
 
+def _obstacle2d_shared_spec() -> SimSpec:
+    """The obstacle sim's ``shared`` family (both modes share the start and the goal): same expert, features
+    and balanced modes as ``cnmp_obstacle2d``; the env config gets ``family="shared"``."""
+    import dataclasses
+
+    base = _obstacle2d_spec()
+    return dataclasses.replace(
+        base,
+        config_kwargs=lambda conditions: {"conditions": conditions, "family": "shared"},
+        description=base.description.replace(
+            "with y0 in s[0.1, 0.3], h in s[0.45, 0.65], p in [0.9, 1.6] for mode s; the start is (0, y0) and "
+            "the goal (1, y0).",
+            "with y0 in [-0.1, 0.1] for both modes (family `shared`: the two modes share the start (0, y0) and "
+            "the goal (1, y0), the paper's setting), h in s[0.45, 0.65], p in [0.9, 1.6] for mode s.")
+        + " Record and evaluate with `--env.family=shared`.",
+    )
+
+
 def _pickplace_reset_options(i: int, conditions: str) -> dict[str, Any]:
     # the paper's 8 training demos: object {2, 6} cm x obstacle {2, 4, 6, 8} cm, in turn
     grid = pickplace.PAPER_TRAIN_GRID
@@ -271,6 +289,7 @@ def _room_spec() -> SimSpec:
 
 SIMS: dict[str, SimSpec] = {
     "cnmp_obstacle2d": _obstacle2d_spec(),
+    "cnmp_obstacle2d_shared": _obstacle2d_shared_spec(),
     "cnmp_pickplace": _pickplace_spec(),
     "cnmp_weights": _weights_spec(),
     "cnmp_room": _room_spec(),
