@@ -17,6 +17,8 @@ from lerobot_cnmp.envs.configs import (
     CNMPPickPlaceEnv,
     CNMPRoomEnv,
     CNMPWeightsEnv,
+    CNMPMetaWorldEnv,
+    METAWORLD_GYM_ID,
 )
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
 from lerobot_cnmp.envs import so101  # registers cnmp_so101 and cnmp/SO101PickPlace-v0
@@ -26,6 +28,7 @@ for _gym_id, _entry_point, _max_steps in (
     (PICKPLACE_GYM_ID, "lerobot_cnmp.envs.pickplace:PickPlaceEnv", pickplace.DEFAULT_MAX_EPISODE_STEPS),
     (WEIGHTS_GYM_ID, "lerobot_cnmp.envs.weights:WeightsEnv", weights.DEFAULT_MAX_EPISODE_STEPS),
     (ROOM_GYM_ID, "lerobot_cnmp.envs.room:RoomEnv", room.DEFAULT_MAX_EPISODE_STEPS),
+    (METAWORLD_GYM_ID, "lerobot_cnmp.envs.metaworld:MetaWorldEnv", 500),
 ):
     if _gym_id not in gym.registry:
         gym.register(id=_gym_id, entry_point=_entry_point, max_episode_steps=_max_steps)
@@ -287,6 +290,33 @@ def _room_spec() -> SimSpec:
     )
 
 
+def _metaworld_spec() -> SimSpec:
+    from lerobot_cnmp.experts.metaworld import MetaWorldExpert
+
+    return SimSpec(
+        env_config_cls=CNMPMetaWorldEnv,
+        expert_cls=MetaWorldExpert,
+        demo_length=150,
+        default_episodes=20,
+        default_conditions="reach-v3",
+        feature_names={"action": ["dx", "dy", "dz", "gripper"], "agent_pos": ["hand_x", "hand_y", "hand_z", "gripper"],
+                       "environment_state": ["obj_x", "obj_y", "obj_z", "goal_x", "goal_y", "goal_z"]},
+        episode_label=lambda env: env.task_name,
+        config_kwargs=lambda conditions: {"task": conditions},
+        features_note=(
+            "`observation.state` is MetaWorld's hand position (m) and gripper opening; `action` its (dx, dy, dz, "
+            "gripper) in [-1, 1]; `observation.task_params` holds gamma = the first frame's main-object and goal "
+            "positions (m), constant within an episode."
+        ),
+        description=(
+            "A MetaWorld v3 task (metaworld 3.0.0: its Sawyer arm, physics, per-reset random object and goal "
+            "placement and `info[\"success\"]`), wrapped by lerobot_cnmp.envs.metaworld without copying any of "
+            "it, and demonstrated by MetaWorld's own scripted expert (metaworld.policies). The recorder's "
+            "`--conditions` names the task (default reach-v3); every demo succeeds at its last frame."
+        ),
+    )
+
+
 SIMS: dict[str, SimSpec] = {
     "cnmp_obstacle2d": _obstacle2d_spec(),
     "cnmp_obstacle2d_shared": _obstacle2d_shared_spec(),
@@ -294,6 +324,7 @@ SIMS: dict[str, SimSpec] = {
     "cnmp_weights": _weights_spec(),
     "cnmp_room": _room_spec(),
     "cnmp_so101": so101.sim_spec(),
+    "cnmp_metaworld": _metaworld_spec(),
 }
 
 __all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPRoomEnv", "CNMPWeightsEnv", "SIMS", "SimSpec",

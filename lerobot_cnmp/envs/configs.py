@@ -102,7 +102,7 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
             start and the goal, the paper's setting).
         actuator: ``servo`` (the stiff position servo of the demos) or ``rate_limited`` (its set point moves at
             most ``rate_limit`` m/s toward the command: the body lags behind the demos' schedule).
-        rate_limit: the ``rate_limited`` actuator's top speed, m/s (default 0.1; the demos move at up to ~0.5).
+        rate_limit: the ``rate_limited`` actuator's top speed, m/s (default 0.08; the demos move at up to ~0.5).
         render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
@@ -297,3 +297,59 @@ class CNMPRoomEnv(CNMPSimConfig):
     @property
     def gym_kwargs(self) -> dict:
         return {"condition": self.condition, "image_size": self.image_size, **self._common_gym_kwargs()}
+
+
+METAWORLD_GYM_ID = "cnmp/MetaWorld-v0"
+
+
+@EnvConfig.register_subclass("cnmp_metaworld")
+@dataclass
+class CNMPMetaWorldEnv(CNMPSimConfig):
+    """A MetaWorld v3 task through our thin wrapper (:mod:`lerobot_cnmp.envs.metaworld`): MetaWorld's physics,
+    randomization and success flag; the hand state as ``agent_pos`` and γ (first frame's object and goal
+    positions) as ``environment_state``, which reaches the policy as ``observation.task_params``.
+
+    Fields:
+        task: any MetaWorld v3 task name (``reach-v3``, ``push-v3``, ``pick-place-v3``, ...).
+        fps: MetaWorld's control rate (80 Hz).
+        episode_length: steps before truncation (at most MetaWorld's 500).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig` (default no rendering:
+            MetaWorld's renderer is slow on CPU).
+    """
+
+    task: str | None = "reach-v3"
+    fps: int = 80
+    episode_length: int = 150
+    render_mode: str | None = None
+    render_size: int = 128
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(4,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(4,)),
+            "environment_state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE, "environment_state": TASK_PARAMS}
+    )
+
+    def __post_init__(self):
+        from lerobot_cnmp.envs.metaworld import check_task
+
+        check_task(self.task)
+        if not 1 <= self.episode_length <= 500:
+            raise ValueError(f"episode_length must be in [1, 500] (MetaWorld's path length), got {self.episode_length}")
+        self._check_common()
+
+    @property
+    def gym_id(self) -> str:
+        return METAWORLD_GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"task": self.task, **self._common_gym_kwargs()}
+
+    def get_env_processors(self):
+        """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``."""
+        rename = RenameObservationsProcessorStep(rename_map={OBS_ENV_STATE: TASK_PARAMS})
+        return PolicyProcessorPipeline(steps=[rename]), PolicyProcessorPipeline(steps=[])

@@ -58,7 +58,7 @@ PUSH_DISTANCE = 0.12
 PUSH_MIN_CLEARANCE = 0.02  # a push toward the obstacle stops this far from it
 HOLD_STEPS = 30
 PERTURB_STEP_RANGE = (50, 120)  # inclusive
-RATE_LIMIT = 0.1  # m/s, the rate_limited actuator's top speed (the demos move at up to ~0.5 m/s)
+RATE_LIMIT = 0.08  # m/s, the rate_limited actuator's top speed (the demos move at up to ~0.5 m/s)
 
 # Task family bounds (for mode +1; mode -1 mirrors y0 and h).
 Y0_RANGE = (0.1, 0.3)
