@@ -68,6 +68,18 @@ class CNMPConfig(PreTrainedConfig):
             of the SM dimensions, so the model can be conditioned on any subset of dimensions.
         sensed_obs_prob: Probability that a sampled observation (not already a partial one) constrains exactly
             the sensed dims, as execution's feedback does (joint layout only; the tied layout senses every dim).
+        feedback_draw_weight: Weight w of *execution-shaped* draws in the loss (joint layout; 0: none, the
+            paper). Execution conditions on the sensed dims at the first step (t = 0, with
+            ``condition_on_start``) and at the current phase τ, and commands the action predicted at τ. A random
+            draw rarely has that shape: its query at τ shares the aggregated representation with observations
+            at other phases. With w > 0 each step also draws, per draw, exactly that context (the sensed dims at
+            the episode's first frame and at a uniform frame j) with queries at j, j + 1 and ``m_max_targets``
+            uniform frames; loss = (1 - w) NLL(random draws) + w NLL(execution-shaped draws). Use it when the
+            action depends sharply on the sensed state (a reactive demonstrator, delta actions).
+        nll_beta: β of the β-NLL (Seitzer et al., ICLR 2022): each SM dim's NLL term is weighted by
+            stop_gradient(σ^(2β)). 0 is the paper's NLL. With the plain NLL the mean's gradient is scaled by
+            1/σ², so a dim the model finds hard early (large σ) stops being fitted and stays blurred; β = 0.5
+            keeps fitting it. Training only: prediction and execution are unchanged.
         draws_per_sample: Independent (observations, queries) draws made from each sampled episode per step:
             the loss sees batch_size x draws_per_sample draws. Every draw takes its frames from the whole
             episode (:mod:`lerobot_cnmp.bank`), so this only multiplies the training signal per loaded sample
@@ -141,7 +153,9 @@ class CNMPConfig(PreTrainedConfig):
     context_in_targets: bool = True
     partial_obs_prob: float = 0.25
     sensed_obs_prob: float = 0.5
+    feedback_draw_weight: float = 0.0
     draws_per_sample: int = 1
+    nll_beta: float = 0.0
 
     # The SM space (lerobot_cnmp.sm_spec) and task parameters γ.
     sm: tuple[str, ...] | None = None
@@ -221,6 +235,10 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
         if self.draws_per_sample < 1:
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
+        if not 0.0 <= self.feedback_draw_weight <= 1.0:
+            raise ValueError(f"feedback_draw_weight must be in [0, 1], got {self.feedback_draw_weight}")
+        if not 0.0 <= self.nll_beta <= 1.0:
+            raise ValueError(f"nll_beta must be in [0, 1], got {self.nll_beta}")
         if self.demo_duration_s is not None and not self.demo_duration_s > 0:
             raise ValueError(f"demo_duration_s must be > 0, got {self.demo_duration_s}")
         for name in ("dataset_fps", "control_fps"):

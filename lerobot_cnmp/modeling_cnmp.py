@@ -189,9 +189,10 @@ class CNMP(nn.Module):
         decoder_layers: tuple[int, ...] = (128, 128, 128),
         min_std: float = 0.01,
         phase_frequencies: int = 0,
+        nll_beta: float = 0.0,
     ):
         super().__init__()
-        self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
+        self.sm_dim, self.task_dim, self.min_std, self.nll_beta = sm_dim, task_dim, min_std, nll_beta
         self.register_buffer(
             "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
         )
@@ -260,9 +261,12 @@ class CNMP(nn.Module):
         return self.decode(self.condition(context), query_phase, context.task_params)
 
     @staticmethod
-    def nll(mean: Tensor, std: Tensor, targets: Targets) -> Tensor:
-        """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries."""
+    def nll(mean: Tensor, std: Tensor, targets: Targets, beta: float = 0.0) -> Tensor:
+        """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries. With
+        ``beta`` > 0, the β-NLL: each dim's term weighted by stop_gradient(σ^(2β))."""
         per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
+        if beta:
+            per_dim = per_dim * std.detach() ** (2.0 * beta)
         per_query = per_dim.sum(dim=-1)
         w = targets.valid.to(per_query.dtype)
         return (per_query * w).sum() / w.sum().clamp(min=1.0)
@@ -270,7 +274,7 @@ class CNMP(nn.Module):
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
         mean, std = self(context, targets.phase)
-        loss = self.nll(mean, std, targets)
+        loss = self.nll(mean, std, targets, self.nll_beta)
         with torch.no_grad():
             w = targets.valid[..., None].to(mean.dtype)
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
@@ -434,6 +438,7 @@ class CNMPPolicy(PreTrainedPolicy):
             decoder_layers=config.decoder_layers,
             min_std=config.min_std,
             phase_frequencies=config.phase_frequencies,
+            nll_beta=config.nll_beta,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec
@@ -443,6 +448,10 @@ class CNMPPolicy(PreTrainedPolicy):
         sensed_only[spec.sensed] = 1.0
         self.register_buffer("sensed_only_mask", None if spec.tied or not spec.sensed else sensed_only,
                              persistent=False)
+        if config.feedback_draw_weight > 0 and self.sensed_only_mask is None:
+            raise ValueError(
+                "feedback_draw_weight > 0 needs the joint layout with sensed dims (execution conditions on them); "
+                f"this SM is {'tied to the action' if spec.tied else 'commanded only'}: set it to 0")
         self.bank: EpisodeBank | None = None
         self._first_frames: FirstFrames | None = None
         if dataset_meta is not None:
@@ -569,8 +578,16 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         episode_index = episode_index.reshape(-1)
         values, phase = self.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
                                        generator)
-        gamma = self.bank.task_params_of(episode_index)
         values = self.normalizer.sm(values.to(dev))
+        valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
+        return Episodes(values, phase.to(dev), valid, self._training_inputs(episode_index, draws))
+
+    def _training_inputs(self, episode_index: Tensor, draws: int) -> Tensor | None:
+        """The episode-level input (normalized γ, the conv encoder's embedding of the first frame) of each named
+        episode, computed once and repeated over its ``draws``; None when there is neither."""
+        c = self.config
+        dev = self.normalizer.sm_std.device
+        gamma = self.bank.task_params_of(episode_index)
         parts = []
         if gamma is not None and c.task_dim:
             parts.append(self.normalizer.task(gamma.to(dev)))
@@ -582,8 +599,7 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
         inputs = None if not parts else (parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1))
         if inputs is not None and draws > 1:
             inputs = inputs.repeat_interleave(draws, dim=0)
-        valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
-        return Episodes(values, phase.to(dev), valid, inputs)
+        return inputs
 
     def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         c = self.config
@@ -594,7 +610,34 @@ policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights c
             episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
             self.sensed_only_mask, c.sensed_obs_prob,
         )
-        return self.model.training_loss(context, targets)
+        loss, info = self.model.training_loss(context, targets)
+        w = c.feedback_draw_weight
+        if w > 0:
+            fb_loss, fb_info = self.model.training_loss(*self.feedback_draws(batch["episode_index"], generator))
+            info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
+            loss = (1.0 - w) * loss + w * fb_loss
+            info["nll"] = loss.item()
+        return loss, info
+
+    def feedback_draws(self, episode_index: Tensor, generator: torch.Generator | None = None) -> tuple[Context, Targets]:
+        """Execution-shaped draws (``feedback_draw_weight``), ``draws_per_sample`` per named episode: the
+        context is the sensed dims at the episode's first frame (with ``condition_on_start``) and at a uniform
+        frame j; the queries are j, j + 1 and ``m_max_targets`` uniform frames."""
+        c = self.config
+        dev = self.normalizer.sm_std.device
+        episode_index = episode_index.reshape(-1)
+        inputs = self._training_inputs(episode_index, c.draws_per_sample)
+        values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample),
+                                                c.m_max_targets, generator)
+        values, phase = self.normalizer.sm(values.to(dev)), phase.to(dev)
+        first = 0 if c.condition_on_start else 1
+        n_ctx = 2 - first
+        b = values.shape[0]
+        mask = self.sensed_only_mask[None, None, :].expand(b, n_ctx, -1)
+        context = Context(phase[:, first:2], values[:, first:2], mask,
+                          torch.ones(b, n_ctx, dtype=torch.bool, device=dev), inputs)
+        targets = Targets(phase[:, 1:], values[:, 1:], torch.ones(b, phase.shape[1] - 1, dtype=torch.bool, device=dev))
+        return context, targets
 
     def get_optim_params(self) -> dict:
         return self.parameters()
