@@ -177,6 +177,22 @@ def test_record_room_images(tmp_path):
     assert "PNG" in card and "CPU cores" in card and "first |" in card
 
 
+def test_record_shared_family(tmp_path):
+    """``--sim cnmp_obstacle2d_shared``: both modes start and end at the same heights (family ``shared``)."""
+    from lerobot_cnmp.envs.obstacle2d import SHARED_Y0_RANGE
+
+    root = record_mod.record_dataset("cnmp_obstacle2d_shared", tmp_path / "ds", n_episodes=4, seed=0, progress=False)
+    df = _parquet(root)
+    card = (root / "README.md").read_text()
+    assert "--sim cnmp_obstacle2d_shared" in card and "family `shared`" in card
+    for e, ep in df.groupby("episode_index"):
+        a = np.stack(ep["action"].to_numpy())
+        assert SHARED_Y0_RANGE[0] <= a[0, 1] <= SHARED_Y0_RANGE[1]
+        assert a[-1, 1] == pytest.approx(a[0, 1], abs=1e-6)
+        # even episodes over the obstacle, odd ones under
+        assert np.sign(a[100, 1]) == (1 if e % 2 == 0 else -1)
+
+
 def test_action_noise_perturbs_execution_and_records_the_experts_action(recorded, tmp_path):
     """DART: the env executes action + noise, the dataset keeps the expert's action (the obstacle expert
     replays its path, so its actions do not depend on the state reached: equal to the noise-free run's)."""
