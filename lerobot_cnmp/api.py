@@ -128,6 +128,7 @@ class CNMPModel:
                 f"steps, batch_size and callback_every must be >= 1; got {steps}, {batch_size}, {callback_every}"
             )
         bank = EpisodeBank.from_arrays(seqs, gamma, fps)
+        torch.manual_seed(seed)  # before the network is built: a new model's initialization follows the seed too
         if self.policy is None:
             self._build(d, 0 if gamma is None else gamma.shape[1])
         elif d != self.config.sm_dim:

@@ -519,3 +519,13 @@ def test_mixture_save_load_bit_identical(fitted_mixture, tmp_path):
     q = np.linspace(0, 1, 33)
     for a, b in zip(fitted_mixture.predict_mixture(q, conds), loaded.predict_mixture(q, conds), strict=True):
         assert np.array_equal(a, b)
+
+
+def test_api_fit_with_a_seed_is_reproducible_from_initialization_on():
+    from lerobot_cnmp.api import CNMPModel
+
+    demos = np.sin(np.linspace(0, 3, 20))[None, :, None].repeat(3, 0) + np.arange(3)[:, None, None]
+    fits = [CNMPModel(encoder_layers=(16, 16), decoder_layers=(16, 16)).fit(demos, steps=5, batch_size=2, seed=3,
+                                                                            progress=False) for _ in range(2)]
+    a, b = (torch.cat([p.detach().reshape(-1) for p in f.policy.parameters()]) for f in fits)
+    assert torch.equal(a, b)
