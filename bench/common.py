@@ -4,6 +4,7 @@ closed-loop helpers (an env observation as the policy's batch, the SM predicted 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -67,19 +68,140 @@ def api_model(cfg: dict | None = None):
     return CNMPModel(**kw)
 
 
-def checkpoint_or_train(path: str | Path | None, out_dir: Path, steps: int | None = None,
-                        config_path: Path = CONFIG) -> Path:
-    """``path`` if it is a checkpoint; else fit the config's CNMP with the in-memory API for the config's
-    steps and batch size (the same model, sampling and schedule as ``lerobot-train``; whole demos instead
-    of windows; γ when the dataset has it) and save it to ``out_dir``."""
+class MissingCheckpointError(FileNotFoundError):
+    """A bench was pointed at a checkpoint that is not there, and not asked to train one (``--train``)."""
+
+
+PROVENANCE_FILE = "bench_provenance.json"
+"""Written by :func:`resolve_checkpoint` into a checkpoint it fitted itself: how it was trained."""
+
+
+def _matching_config(train_cfg: dict) -> Path | None:
+    """The ``configs/*.json`` whose dataset root, steps, seed and job name are those of a ``lerobot-train``
+    run's ``train_config.json`` (LeRobot does not store the ``--config_path`` it was given)."""
+    keys = (("dataset", "root"), ("steps",), ("seed",), ("job_name",))
+
+    def pick(d, k):
+        for part in k:
+            d = d.get(part) if isinstance(d, dict) else None
+        return d
+
+    for cand in sorted((REPO / "configs").glob("*.json")):
+        try:
+            c = json.loads(cand.read_text())
+        except (OSError, ValueError):
+            continue
+        if all(pick(c, k) == pick(train_cfg, k) for k in keys):
+            return cand
+    return None
+
+
+def provenance(path: str | Path) -> dict:
+    """Which checkpoint produced a bench's figures: its path, training step, training command and a hash of
+    its weights (``model.safetensors``). For a ``lerobot-train`` checkpoint the step is read from
+    ``training_state/training_step.json`` and the command rebuilt from ``train_config.json`` (the committed
+    config with the same dataset, steps, seed and job name, and the run's output dir); for a checkpoint a
+    bench fitted itself, from the record it wrote (``bench_provenance.json``)."""
+    import hashlib
+
+    path = Path(path).absolute()
+    if not (path / "config.json").is_file():
+        raise MissingCheckpointError(f"no checkpoint at {path} (no config.json)")
+    weights = path / "model.safetensors"
+    out = {"path": str(path), "step": None, "training_command": None, "trained_by": None,
+           "weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()[:16] if weights.is_file() else None}
+    own = path / PROVENANCE_FILE
+    if own.is_file():
+        out.update(json.loads(own.read_text()))
+        return out
+    step_file = path.parent / "training_state" / "training_step.json"
+    if step_file.is_file():
+        out["step"] = int(json.loads(step_file.read_text())["step"])
+    train_file = path / "train_config.json"
+    if train_file.is_file():
+        tc = json.loads(train_file.read_text())
+        out["trained_by"] = "lerobot-train"
+        out["train_config"] = str(train_file)
+        match = _matching_config(tc)
+        if match is not None:
+            out["training_command"] = (f"lerobot-train --config_path={match.relative_to(REPO)} "
+                                       f"--output_dir={tc.get('output_dir')}")
+        else:
+            out["training_command"] = (f"lerobot-train (no committed config matches; see {train_file}: dataset "
+                                       f"{tc['dataset'].get('root') or tc['dataset'].get('repo_id')}, "
+                                       f"{tc.get('steps')} steps, seed {tc.get('seed')})")
+        if out["step"] is None:
+            out["step"] = tc.get("steps")
+    else:
+        out["trained_by"] = "unknown (no train_config.json, no bench_provenance.json)"
+    return out
+
+
+def resolve_checkpoint(path: str | Path | None, *, train: bool, out_dir: Path, steps: int | None = None,
+                       config_path: Path = CONFIG) -> Path:
+    """``path`` if it is a checkpoint folder (holding ``config.json``). Otherwise, with ``train``, fit the
+    config's CNMP with the in-memory API (:func:`fit_checkpoint`) into ``out_dir``; without it, raise
+    :class:`MissingCheckpointError` saying how to get one. A bench never trains silently."""
     if path is not None and (Path(path) / "config.json").is_file():
         return Path(path)
+    if path is not None and Path(path).exists():
+        hint = Path(path) / "pretrained_model"
+        more = f" (did you mean {hint}?)" if (hint / "config.json").is_file() else ""
+        if not train:
+            raise MissingCheckpointError(f"{path} is not a checkpoint folder: it has no config.json{more}")
+    if not train:
+        rel = Path(config_path)
+        rel = rel.relative_to(REPO) if rel.is_absolute() and REPO in rel.parents else rel
+        raise MissingCheckpointError(
+            f"no checkpoint at {path}: train one with `lerobot-train --config_path={rel} --output_dir=...` and "
+            f"pass its checkpoints/last/pretrained_model as --checkpoint, or pass --train to fit {Path(config_path).name}'s "
+            "CNMP with the in-memory API first")
+    return fit_checkpoint(out_dir, steps=steps, config_path=config_path)
+
+
+def fit_checkpoint(out_dir: Path, steps: int | None = None, config_path: Path = CONFIG) -> Path:
+    """Fit the config's CNMP with the in-memory API for the config's steps and batch size (the same model,
+    sampling and schedule as ``lerobot-train``; whole demos instead of windows; γ when the dataset has it),
+    save it to ``out_dir`` with a ``bench_provenance.json`` recording the call."""
     from lerobot_cnmp.data import load_demos
 
     cfg = config(config_path)
     steps = steps or cfg["steps"]
-    print(f"no checkpoint at {path}: fitting {Path(config_path).name}'s CNMP with the in-memory API ({steps} steps)")
+    print(f"--train: fitting {Path(config_path).name}'s CNMP with the in-memory API ({steps} steps)", flush=True)
     data = load_demos(REPO / cfg["dataset"]["root"])
     model = api_model(cfg).fit(data["demos"], task_params=data["task_params"], steps=steps,
-                               batch_size=cfg["batch_size"], seed=cfg.get("seed", 0))
-    return model.save(out_dir)
+                               batch_size=cfg["batch_size"], seed=cfg.get("seed", 0), progress=False)
+    path = model.save(out_dir)
+    rel = Path(config_path)
+    rel = rel.relative_to(REPO) if rel.is_absolute() and REPO in rel.parents else rel
+    (Path(path) / PROVENANCE_FILE).write_text(json.dumps({
+        "trained_by": "lerobot_cnmp.api.CNMPModel.fit (bench --train)",
+        "step": steps,
+        "training_command": (f"bench.common.fit_checkpoint(config_path={str(rel)!r}, steps={steps}): "
+                             f"CNMPModel(<{rel}'s policy fields>).fit(load_demos({cfg['dataset']['root']!r}), "
+                             f"steps={steps}, batch_size={cfg['batch_size']}, seed={cfg.get('seed', 0)})"),
+    }, indent=2))
+    return path
+
+
+def add_checkpoint_args(parser, default: Path, what: str = "a CNMP checkpoint") -> None:
+    """``--checkpoint`` (default ``default``) and ``--train`` (fit one with the API if it is missing)."""
+    parser.add_argument("--checkpoint", default=str(default), help=f"{what} (a pretrained_model folder)")
+    parser.add_argument("--train", action="store_true",
+                        help="if --checkpoint is missing, fit the config's CNMP with the in-memory API first "
+                             "(without it a missing checkpoint is an error)")
+
+
+def fitted_dir(name: str) -> Path:
+    """Where ``--train`` saves the checkpoint it fits for ``name`` (kept, so the JSON's path stays valid)."""
+    return REPO / "outputs" / "bench" / "fitted" / name
+
+
+def checkpoint_from_args(args, name: str, config_path: Path = CONFIG) -> Path:
+    """:func:`resolve_checkpoint` of a bench's ``--checkpoint`` / ``--train``; a missing checkpoint ends the
+    script with the error's message (exit status 2), not a traceback."""
+    try:
+        return resolve_checkpoint(args.checkpoint, train=args.train, out_dir=fitted_dir(name), config_path=config_path)
+    except MissingCheckpointError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -122,16 +122,28 @@ def main() -> dict:
         "control_step_torch_p50_ms": round(t["control_step_torch"][0], 4),
         "trajectory_200_torch_ms": round(t["trajectory_200_torch"][0], 4),
         "executor": type(executor).__name__,
+        "timed": {
+            "control_step_p50_ms": f"network alone ({type(executor).__name__}): encode + aggregate + decode of a ready "
+                                   "context, 1 query; no processors, no context building",
+            "trajectory_200_ms": f"network alone ({type(executor).__name__}), 200 queries in one call",
+            "control_step_torch_p50_ms": "network alone, torch model (inference_mode), 1 query",
+            "trajectory_200_torch_ms": "network alone, torch model, 200 queries",
+            "select_action_p50_ms": "the whole lerobot-eval step: preprocessor + CNMPPolicy.select_action (context "
+                                    "building, phase update, network, PD) + postprocessor",
+        },
+        "checkpoint": {"path": None, "step": 0, "training_command": None,
+                       "trained_by": "none: an untrained CNMPConfig() policy with the dataset's statistics "
+                                     "(latency does not depend on the weights)"},
         **{f"{k}_round_p50s_ms": [round(v, 4) for v in t[k][1]] for k in fns},
         "calls": args.calls,
         "context_points": int(ctx.valid.sum()),
         "torch_threads": torch.get_num_threads(),
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU",
     }
-    labels = {"control_step": "control step", "trajectory_200": "200-step trajectory + σ",
-              "select_action": "select_action + procs", "chunk_50": "50-step chunk + σ + procs",
-              "control_step_torch": "control step, torch",
-              "trajectory_200_torch": "200-step traj., torch"}
+    labels = {"control_step": "network alone, 1 query", "trajectory_200": "network alone, 200 queries + σ",
+              "select_action": "select_action + processors", "chunk_50": "50-step chunk + σ + processors",
+              "control_step_torch": "network alone, torch",
+              "trajectory_200_torch": "network alone, torch, 200q"}
     print(f"{'figure':<26}{'p50 (ms)':>10}   rounds' p50s")
     for k, label in labels.items():
         print(f"{label:<26}{t[k][0]:>10.4f}   {' '.join(f'{v:.3f}' for v in t[k][1])}")

@@ -83,7 +83,13 @@ def main() -> dict:
     res: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         ckpt = args.checkpoint
-        if ckpt is None:
+        if ckpt is not None:
+            from common import provenance
+
+            res_ckpt = provenance(ckpt)
+        else:
+            res_ckpt = {"path": None, "step": 20, "trained_by": "this bench (RSS does not depend on the weights)",
+                        "training_command": "CNMPModel.fit(<cnmp_obstacle2d demos>, steps=20) in a child process"}
             ckpt = str(Path(tmp) / "ckpt")
             code = API_TRAIN.format(bench=str(BENCH), steps=20) + f"\nmodel.save({ckpt!r})\n"
             peak_rss_mb(["-c", RUN_CODE, code], tmp)
@@ -101,14 +107,15 @@ def main() -> dict:
         res["rss_imports_only_mb"] = peak_rss_mb(
             ["-c", RUN_CODE, "import lerobot_cnmp.api, lerobot_cnmp.data, lerobot.datasets.lerobot_dataset"], tmp)
     res = {k: round(v, 1) for k, v in res.items()}
+    res_full = {**res, "checkpoint": res_ckpt}
     labels = {"peak_rss_train_mb": "train, lerobot-train", "peak_rss_train_api_mb": "train, in-memory API",
               "peak_rss_inference_mb": "inference, lerobot-eval", "peak_rss_inference_api_mb": "inference, API",
               "rss_imports_only_mb": "(imports alone: torch, LeRobot)"}
     print(f"{'process':<28}{'peak RSS (MB)':>14}")
     for k, label in labels.items():
         print(f"{label:<28}{res[k]:>14.1f}")
-    print(json.dumps(res))
-    return res
+    print(json.dumps(res_full))
+    return res_full
 
 
 if __name__ == "__main__":

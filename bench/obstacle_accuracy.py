@@ -11,7 +11,8 @@ nearest demonstration (a mean between the modes scores high even when it misses 
 ProMP and DMP are ``movement_primitives``' (31 RBFs per dim, as in the paper), fitted on the dataset the
 CNMP was trained on; a DMP only takes a start and a goal, so it runs on the start + goal sets only.
 ``obstacle_collision_free_<method>`` is over every set the method can take. Also draws Fig. 4's rows.
-Without a checkpoint, the config's CNMP is fitted with the in-memory API first (~1 min).
+A missing checkpoint is an error; with ``--train`` the config's CNMP is fitted with the in-memory API first
+(~1 min). The JSON's ``checkpoint`` names the checkpoint (path, step, training command).
 Last line: one JSON object.
 """
 
@@ -20,13 +21,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CHECKPOINT, DATASET, REPO, checkpoint_or_train  # noqa: E402
+from common import CHECKPOINT, DATASET, REPO, add_checkpoint_args, checkpoint_from_args, provenance  # noqa: E402
 
 
 def evaluate(predict, condition_sets, phases, demos):
@@ -47,7 +47,7 @@ def evaluate(predict, condition_sets, phases, demos):
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(CHECKPOINT), help="a CNMP checkpoint trained on --dataset")
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on --dataset")
     p.add_argument("--dataset", default=str(DATASET))
     p.add_argument("--random", type=int, default=100)
     p.add_argument("--start_goal", type=int, default=50)
@@ -64,8 +64,8 @@ def main() -> dict:
     from lerobot_cnmp.plot import mode_colors, plot_conditioned_xy
 
     demos = load_demos(args.dataset)["demos"]
-    with tempfile.TemporaryDirectory() as tmp:
-        cnmp = CNMPModel.load(checkpoint_or_train(args.checkpoint, Path(tmp) / "cnmp"))
+    ckpt = checkpoint_from_args(args, "cnmp_obstacle2d")
+    cnmp = CNMPModel.load(ckpt)
     methods = {"CNMP": cnmp.predict, "ProMP": ProMPBaseline().fit(demos).predict, "DMP": DMPBaseline().fit(demos).predict}
     rng = np.random.default_rng(args.seed)
     random_sets = [sample_episode(rng, "random")[1] for _ in range(args.random)]
@@ -77,7 +77,7 @@ def main() -> dict:
                 "random": (f"random ({args.random})", random_sets),
                 "startgoal": (f"start+goal ({args.start_goal})", start_goal_sets)}
     phases = np.linspace(0, 1, 200)
-    res: dict = {}
+    res: dict = {"checkpoint": provenance(ckpt)}
     demo_grid = np.stack([np.stack([np.interp(phases, np.linspace(0, 1, len(d)), d[:, k]) for k in range(d.shape[1])], 1)
                           for d in demos])
     print(f"{'method':<8}{'condition sets':<18}{'collision-free %':>18}{'error at conditions':>22}{'off-demo dist':>15}")

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, policy_batch, predict_sm  # noqa: E402
+from common import REPO, policy_batch, predict_sm, provenance  # noqa: E402
 
 CHECKPOINT = REPO / "outputs" / "room" / "train" / "checkpoints" / "last" / "pretrained_model"
 OUT = REPO / "docs" / "fig6_room.png"
@@ -132,6 +132,7 @@ def main() -> dict:
         }
         print(f"{kind:>9}: {summary[kind]}")
     summary["figure"] = str(plot(results, args.out))
+    summary["checkpoint"] = provenance(args.checkpoint)
     print(json.dumps(summary))
     return summary
 

@@ -5,7 +5,9 @@
 Runs each ``bench/*.py`` script in its own process, in sequence (one at a time, so timings do not
 compete for the 2 cores), keeps each one's full output under ``--out`` and merges the JSON objects they
 print last. Prints a table of the headline figures (markdown, ready for the README) and, as its last line,
-one JSON object. About 8 min on 2 CPU cores with trained checkpoints, 11 min without.
+one JSON object, whose ``checkpoints`` names, per script, the checkpoint its figures come from (path, step,
+training command). About 8 min on 2 CPU cores with trained checkpoints; without them pass ``--train``
+(11 min): a missing checkpoint is otherwise an error.
 """
 
 from __future__ import annotations
@@ -26,11 +28,11 @@ REPO = BENCH.parent
 SCRIPTS = [
     ("latency.py", []),
     ("sine_benchmark.py", []),
-    ("obstacle_accuracy.py", []),
+    ("obstacle_accuracy.py", ["--train?"]),
     ("train_speed.py", []),
     ("time_to_error.py", []),
     ("memory.py", []),
-    ("table1.py", []),
+    ("table1.py", ["--train?"]),
 ]
 
 HEADLINE = [
@@ -45,11 +47,11 @@ HEADLINE = [
     ("sine_error_cnmp", "Sine benchmark error, CNMP (published CNMP 0.112)", "", "≤ 0.05"),
     ("sine_error_promp", "Sine benchmark error, ProMP mean (published ProMP 0.181)", "", ""),
     ("sine_error_promp_sample", "Sine benchmark error, 1 ProMP sample", "", ""),
-    ("control_step_p50_ms", "Control step p50 (in-process, the policy's numpy executor)", "ms", "≤ 0.15"),
-    ("trajectory_200_ms", "200-step trajectory with σ, p50 (numpy executor)", "ms", "≤ 0.5"),
-    ("control_step_torch_p50_ms", "Control step p50, torch model (1 thread)", "ms", ""),
-    ("trajectory_200_torch_ms", "200-step trajectory with σ, torch model", "ms", ""),
-    ("select_action_p50_ms", "select_action + processors, p50", "ms", "≤ 1"),
+    ("control_step_p50_ms", "Control step p50, network alone (the policy's numpy executor, no processors)", "ms", "≤ 0.15"),
+    ("trajectory_200_ms", "200-step trajectory with σ, p50, network alone (numpy executor)", "ms", "≤ 0.5"),
+    ("control_step_torch_p50_ms", "Control step p50, network alone, torch model (1 thread)", "ms", ""),
+    ("trajectory_200_torch_ms", "200-step trajectory with σ, network alone, torch model", "ms", ""),
+    ("select_action_p50_ms", "Whole lerobot-eval step p50: preprocessor + select_action + postprocessor", "ms", "≤ 1"),
     ("train_steps_per_s_api", "Training steps/s, in-memory API", "1/s", ""),
     ("train_steps_per_s_lerobot", "Training steps/s, lerobot-train", "1/s", ""),
     ("train_step_ms_batch1_api", "Training step at batch 1, 1 draw (the paper's setting), API", "ms", ""),
@@ -86,15 +88,21 @@ def run_script(name: str, args: list[str], out: Path) -> tuple[dict, float]:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=str(REPO / "outputs" / "bench"))
+    p.add_argument("--train", action="store_true",
+                   help="let the scripts that need a trained checkpoint fit one with the API when it is missing "
+                        "(without it a missing checkpoint stops the suite)")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results: dict = {}
     seconds: dict = {}
+    checkpoints: dict = {}
     start = time.perf_counter()
     for name, extra in SCRIPTS:
         print(f"== bench/{name}", flush=True)
+        extra = [a.rstrip("?") for a in extra if not a.endswith("?") or args.train]
         figures, seconds[name] = run_script(name, extra, out)
+        checkpoints[name] = figures.pop("checkpoint", None)
         print(f"   done in {seconds[name]:.0f} s", flush=True)
         results.update(figures)
     missing = [k for k in REQUIRED if k not in results]
@@ -105,7 +113,8 @@ def main() -> dict:
     machine = f"{platform.machine()}, {os.cpu_count()} CPU cores, no GPU used, torch {torch.__version__}"
     results.update({"date": date.today().isoformat(), "machine": machine,
                     "suite_minutes": round((time.perf_counter() - start) / 60, 1),
-                    "script_seconds": {k: round(v, 1) for k, v in seconds.items()}})
+                    "script_seconds": {k: round(v, 1) for k, v in seconds.items()},
+                    "checkpoints": checkpoints})
     (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"\nFigures of {results['date']} on {machine}; suite took {results['suite_minutes']} min.\n")
     print("| figure | value | bar |\n|---|---:|---|")

@@ -1,6 +1,6 @@
 """Multimodal sine benchmark, after the published protocol of CNEP (Yildirim & Ugur, arXiv 2402.08424).
 
-    python bench/sine_benchmark.py [--steps 4000] [--seed 0]
+    python bench/sine_benchmark.py [--steps 4000] [--seed 0] [--experts 4]
 
 Data (as in the CNEP code, ``compare_cneps_on_4_sines_abl.py``): 4 modes x 32 demos of 200 steps on
 x = linspace(0, 1, 200). Mode i = 0..3: y = (sin((x + 0.2 (i+1)) · (i+1)π/2 + φ) + ε + 1) / 2, with a
@@ -13,9 +13,13 @@ value, so a test does not name one true mode: the protocol scores a prediction a
 demonstration of any mode, error = min over demos of mean_t |prediction(t) - demo(t)|, averaged over tests.
 
 Published figures on this protocol: ProMP 0.181, GMM-GMR 0.332, CNMP 0.112, CNEP 0.027. Here CNMP is our
-``CNMPModel`` with the config's defaults except n_max = m_max = 10 (as there); ProMP is
+``CNMPModel`` with the config's defaults except n_max = m_max = 10 (as there); the mixture is the same
+model with ``n_experts`` = 4 decoders and a gate (CNEP's setting; scored, as their code does, on the mean
+of the most probable expert), trained with the same steps, batch and seed; ProMP is
 ``movement_primitives``' with 10 RBFs (as there), scored on its conditioned mean (what it predicts) and, as
-the CNEP code did, on one sample of it. Also draws ``docs/sine_cnmp_vs_promp.png``.
+the CNEP code did, on one sample of it. Also draws ``--plot`` (CNMP vs ProMP) and ``--mixture_plot`` (each
+expert's prediction, opacity and width by its gate probability, beside the demos); the figures in docs/ are
+``--plot docs/sine_cnmp_vs_promp.png --mixture_plot docs/sine_mixture.png``.
 Last line: one JSON object.
 """
 
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -84,14 +89,19 @@ def main() -> dict:
     p.add_argument("--steps", type=int, default=4000, help="CNMP training steps (batch 32)")
     p.add_argument("--batch_size", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
+    p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
+    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--plot", default=str(REPO / "outputs" / "sine_cnmp_vs_promp.png"))
+    p.add_argument("--mixture_plot", default=str(REPO / "outputs" / "sine_mixture.png"))
     args = p.parse_args()
     import torch
 
     from lerobot_cnmp.api import CNMPModel
     from lerobot_cnmp.baselines import ProMPBaseline
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", 2)))  # 2 unless the environment says
     rng = np.random.default_rng(args.seed)
     demos, modes, means = make_sines(rng)
     tests = draw_tests(means, rng)
@@ -103,6 +113,15 @@ def main() -> dict:
         demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
     )
     fit_s = time.perf_counter() - t0
+    mixture, mix_fit_s = None, None
+    if args.experts > 0:
+        t0 = time.perf_counter()
+        settings = {k: getattr(args, k) for k in ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")
+                    if getattr(args, k) is not None}
+        mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts, **settings).fit(
+            demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
+        )
+        mix_fit_s = time.perf_counter() - t0
     promp = ProMPBaseline(n_weights_per_dim=10).fit(demos[..., None])
 
     cnmp_traj = [cnmp.predict(x, c)[0][:, 0] for c in sets]
@@ -114,17 +133,31 @@ def main() -> dict:
            "cnmp_fit_s": round(fit_s, 1)}
     rows = [("CNMP (ours)", "cnmp", cnmp_traj), ("ProMP mean", "promp", promp_traj),
             ("ProMP 1 sample", "promp_sample", promp_samples)]
+    if mixture is not None:
+        rows.insert(1, (f"mixture K={args.experts}", "mixture", [mixture.predict(x, c)[0][:, 0] for c in sets]))
+        res.update(mixture_experts=args.experts, mixture_fit_s=round(mix_fit_s, 1),
+                   mixture_settings={k: getattr(mixture.config, k) for k in
+                                     ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")})
     print(f"{'method':<16}{'error (mean ± std)':>22}{'published':>11}")
     for label, key, traj in rows:
         mean, std = score(traj, demos)
         res[f"sine_error_{key}"], res[f"sine_error_{key}_std"] = round(mean, 4), round(std, 4)
-        pub = PUBLISHED.get(key if key != "promp_sample" else "promp")
+        pub = PUBLISHED.get({"promp_sample": "promp", "mixture": "cnep"}.get(key, key))
         print(f"{label:<16}{mean:>13.3f} ± {std:<6.3f}{'' if pub is None else f'{pub:>11.3f}'}")
-    for key in ("gmm_gmr", "cnep"):
+    for key in ("gmm_gmr",) + (("cnep",) if mixture is None else ()):
         print(f"{key.upper().replace('_', '-'):<16}{'(not run here)':>22}{PUBLISHED[key]:>11.3f}")
     res["sine_published"] = PUBLISHED
     res["sine_plot"] = str(plot(x, demos, modes, sets[:: len(tests) // 2][:4], cnmp, promp, args.plot))
     print(f"plot: {res['sine_plot']}")
+    if mixture is not None:
+        probs = np.stack([mixture.predict_mixture(x, c)[2] for c in sets])
+        res["mixture_gate_max_prob_mean"] = round(float(probs.max(axis=1).mean()), 3)
+        res["mixture_expert_use"] = np.bincount(probs.argmax(axis=1), minlength=args.experts).tolist()
+        print(f"mixture: mean max gate probability {res['mixture_gate_max_prob_mean']}, tests per expert "
+              f"{res['mixture_expert_use']}")
+        res["sine_mixture_plot"] = str(plot_mixture(x, demos, modes, sets[:: len(tests) // 2][:4], mixture,
+                                                    args.mixture_plot))
+        print(f"plot: {res['sine_mixture_plot']}")
     print(json.dumps(res))
     return res
 
@@ -151,6 +184,33 @@ def plot(x, demos, modes, sets, cnmp, promp, path) -> Path:
     np.atleast_1d(axes)[0].set_ylabel("y")
     np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=8)
     fig.suptitle("Multimodal sines: demos by mode, predictions (mean ± 2σ) given the circled conditions")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_mixture(x, demos, modes, sets, mixture, path) -> Path:
+    """A few tests: demos by mode (thin gray), each expert's mean ± 2σ with opacity/width by its gate π."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lerobot_cnmp.plot import plot_experts
+
+    fig, axes = plt.subplots(1, len(sets), figsize=(4 * len(sets), 3.4), sharey=True)
+    for ax, conds in zip(np.atleast_1d(axes), sets, strict=False):
+        ax.plot(x, demos.T, color="0.6", lw=0.4, alpha=0.25)
+        plot_experts(ax, x, *mixture.predict_mixture(x, conds))
+        ax.plot([c.phase for c in conds], [c.values[0] for c in conds], "o", ms=8, mfc="none", mec="k", mew=2)
+        ax.set_xlabel("t")
+        ax.set_ylim(-0.1, 1.1)
+        ax.legend(loc="lower left", fontsize=7)
+    np.atleast_1d(axes)[0].set_ylabel("y")
+    fig.suptitle("Mixture CNMP on the sines: each expert's prediction, opacity and width by its gate probability")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ by the policy (online feedback, PD, phase stopping; LeRobot's ``rollout``, as ``
 and ``--random`` episodes with γ drawn uniformly inside the training range give the interpolation success
 rate. Extrapolated γ (outside object 2-6 cm, obstacle 2-8 cm) are flagged in the table. Also draws a figure
 like the paper's Fig. 8 (demos gray, ground truth dashed, prediction ± 2σ) for three joints.
-Without a checkpoint, the config's CNMP is fitted with the in-memory API first (~1 min).
+A missing checkpoint is an error; with ``--train`` the config's CNMP is fitted with the in-memory API first (~1 min).
 Last line: one JSON object.
 """
 
@@ -19,13 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, checkpoint_or_train, make_sim  # noqa: E402
+from common import REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_pickplace.json"
 CHECKPOINT = REPO / "outputs" / "pickplace" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -95,7 +94,7 @@ def plot_fig8(model, demos, gammas, phases, path: Path) -> Path:
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(CHECKPOINT), help="a CNMP checkpoint trained on cnmp_pickplace")
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_pickplace")
     p.add_argument("--random", type=int, default=30, help="executed episodes with random interpolation γ")
     p.add_argument("--seed", type=int, default=700000)
     p.add_argument("--plot", default=str(REPO / "outputs" / "fig8_pickplace.png"))
@@ -108,10 +107,9 @@ def main() -> dict:
                                              is_extrapolation, reference_trajectory)
 
     demos = load_demos(REPO / "datasets" / "cnmp_pickplace")["demos"]
-    with tempfile.TemporaryDirectory() as tmp:
-        ckpt = checkpoint_or_train(args.checkpoint, Path(tmp) / "cnmp", config_path=CONFIG)
-        model = CNMPModel.load(ckpt)
-        policy, pre, post = load_pretrained(ckpt)
+    ckpt = checkpoint_from_args(args, "cnmp_pickplace", config_path=CONFIG)
+    model = CNMPModel.load(ckpt)
+    policy, pre, post = load_pretrained(ckpt)
     phases = np.linspace(0.0, 1.0, 200)
     start = Condition(0.0, tuple(float(v) for v in demos[0][0]))
     gammas = [*PAPER_INTERPOLATION, *PAPER_EXTRAPOLATION]
@@ -131,6 +129,7 @@ def main() -> dict:
               f"{'success' if success[gamma] else 'FAIL':>10}")
     interp = [g for g in gammas if not is_extrapolation(g)]
     res = {
+        "checkpoint": provenance(ckpt),
         "interp_max_err_deg": round(float(max(errors[g].max() for g in interp)), 4),
         "interp_mean_err_deg": round(float(np.mean([errors[g].mean() for g in interp])), 4),
         **{f"extrap_{key(g)}_max_err_deg": round(float(errors[g].max()), 4) for g in PAPER_EXTRAPOLATION},

@@ -8,8 +8,8 @@ phase stop). At every step it also asks the CNMP, conditioned as the executor is
 at the end of the motion (phase 1): the predicted end position (x, y) with its σ. The figure shows
 (left) the four zones, the executed tool path and the predicted end distribution (μ ± 2σ) before the
 grasp, after the lift and after the switch; (right) the phase against the control step, which stalls
-while the arm is redirected after the switch, and the predicted end y. Without a checkpoint, the config's
-CNMP is fitted with the API first. Last line: one JSON object.
+while the arm is redirected after the switch, and the predicted end y. A missing checkpoint is an error;
+with ``--train`` the config's CNMP is fitted with the API first. Last line: one JSON object.
 """
 
 from __future__ import annotations
@@ -17,13 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, checkpoint_or_train, policy_batch, predict_sm  # noqa: E402
+from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, predict_sm, provenance  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -125,7 +124,7 @@ def moments_of(log: dict) -> dict:
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(CHECKPOINT))
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_weights")
     p.add_argument("--shape", type=int, default=1)
     p.add_argument("--mass", type=float, default=0.225)
     p.add_argument("--seed", type=int, default=0)
@@ -136,15 +135,15 @@ def main() -> dict:
     from lerobot_cnmp.envs.configs import CNMPWeightsEnv
     from lerobot_cnmp.envs.weights import SHAPES, WeightsEnv
 
-    with tempfile.TemporaryDirectory() as tmp:
-        ckpt = checkpoint_or_train(args.checkpoint, Path(tmp) / "cnmp", config_path=CONFIG)
-        policy, pre, post = load_pretrained(ckpt)
+    ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
+    policy, pre, post = load_pretrained(ckpt)
     policy.eval()
     env = WeightsEnv(perturbation="weight_switch", render_mode=None, terminate_on_success=True)
     log = run_episode(policy, pre, post, env, args.shape, args.mass, args.seed, CNMPWeightsEnv().episode_length)
     info = log["info"]
     moments = moments_of(log)
     res = {
+        "checkpoint": provenance(ckpt),
         "success": bool(info["is_success"]),
         "steps": len(log["phase"]),
         "switch_step": int(info["switch_step"]),

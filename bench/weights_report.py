@@ -7,7 +7,7 @@ the CNMP is conditioned on its start state only (before the grasp: all four zone
 also on the sensed SM right after the lift (fingers closed on the container, F/T loaded by its weight).
 Reported: the zone of the predicted end position against the true one, and the σ of the predicted end
 position (x, y) before the grasp and after the lift. This is the prediction step of the paper's Fig. 11,
-without closed-loop execution. Without a checkpoint, the config's CNMP is fitted with the API first.
+without closed-loop execution. A missing checkpoint is an error; with ``--train`` the config's CNMP is fitted with the API first.
 Last line: one JSON object.
 """
 
@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, checkpoint_or_train  # noqa: E402
+from common import REPO, add_checkpoint_args, checkpoint_from_args, provenance  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -31,7 +30,7 @@ AFTER_LIFT_STEP = 112
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", default=str(CHECKPOINT))
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_weights")
     args = p.parse_args()
 
     from lerobot_cnmp.api import CNMPModel
@@ -39,8 +38,8 @@ def main() -> dict:
     from lerobot_cnmp.envs.weights import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY, WeightsEnv
     from lerobot_cnmp.experts.weights import WeightsExpert
 
-    with tempfile.TemporaryDirectory() as tmp:
-        model = CNMPModel.load(checkpoint_or_train(args.checkpoint, Path(tmp) / "cnmp", config_path=CONFIG))
+    ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
+    model = CNMPModel.load(ckpt)
     env = WeightsEnv(render_mode=None, terminate_on_success=False)
     rows, sd_before, sd_after = [], [], []
     for shape in range(len(SHAPES)):
@@ -66,6 +65,7 @@ def main() -> dict:
     for shape, mass, truth, zone in rows:
         print(f"{shape:<10}{mass:>9.4f}{truth:>11}{zone:>11}")
     res = {
+        "checkpoint": provenance(ckpt),
         "classification_accuracy_pct": round(100.0 * np.mean([t == z for *_, t, z in rows]), 1),
         "episodes": len(rows),
         "end_sigma_before_grasp_m": [round(float(v), 4) for v in np.mean(sd_before, axis=0)],

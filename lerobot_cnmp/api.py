@@ -128,6 +128,7 @@ class CNMPModel:
                 f"steps, batch_size and callback_every must be >= 1; got {steps}, {batch_size}, {callback_every}"
             )
         bank = EpisodeBank.from_arrays(seqs, gamma, fps)
+        torch.manual_seed(seed)  # before the network is built: a new model's initialization follows the seed too
         if self.policy is None:
             self._build(d, 0 if gamma is None else gamma.shape[1])
         elif d != self.config.sm_dim:
@@ -206,16 +207,39 @@ class CNMPModel:
         t = lambda a: torch.from_numpy(a).to(self.device)  # noqa: E731
         return Context(t(ph), t(vals), t(mask), torch.ones(ph.shape, dtype=torch.bool, device=self.device), gamma)
 
-    @torch.no_grad()
-    def predict(self, phases, conditions: list[Condition], task_params=None) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and σ of the SM at ``phases`` (values in [0, 1]) given the conditions: two ``[M, D]`` arrays."""
+    def _query(self, phases) -> torch.Tensor:
         q = np.asarray(phases, dtype=np.float32).reshape(-1)
         if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
             raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+        return torch.from_numpy(q[None]).to(self.device)
+
+    @torch.no_grad()
+    def predict(self, phases, conditions: list[Condition], task_params=None, expert: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and σ of the SM at ``phases`` (values in [0, 1]) given the conditions: two ``[M, D]`` arrays.
+        With a mixture (``n_experts`` K > 1): those of the most probable expert, or of expert ``expert``."""
+        q = self._query(phases)
         ctx = self.context(conditions, task_params)
-        mean, std = self.policy.model(ctx, torch.from_numpy(q[None]).to(self.device))
+        if expert is None:
+            mean, std = self.policy.model(ctx, q)
+        else:
+            k = self.policy.model.n_experts
+            if int(expert) != expert or not 0 <= expert < k:
+                raise ValueError(f"expert must be an integer in 0..{k - 1} (this model has {k}), got {expert}")
+            means, stds, _ = self.policy.model.mixture(ctx, q)
+            mean, std = means[:, int(expert)], stds[:, int(expert)]
         mean = mean[0].cpu().numpy() * self.sm_std + self.sm_mean
         return mean, std[0].cpu().numpy() * self.sm_std
+
+    @torch.no_grad()
+    def predict_mixture(self, phases, conditions: list[Condition], task_params=None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every expert's prediction and probability given the conditions: μ_k and σ_k ``[K, M, D]`` (SM units)
+        and the gate's π ``[K]`` (sums to 1). K = 1 (a plain CNMP): one expert of probability 1."""
+        q, ctx = self._query(phases), self.context(conditions, task_params)
+        means, stds, probs = self.policy.model.mixture(ctx, q)
+        return (means[0].cpu().numpy() * self.sm_std + self.sm_mean, stds[0].cpu().numpy() * self.sm_std,
+                probs[0].cpu().numpy())
 
     # ---- persistence ----------------------------------------------------------------------------------
 

@@ -61,6 +61,30 @@ class CNMPConfig(PreTrainedConfig):
         phase_frequencies: K > 0 adds sin/cos(k·π·t), k = 1..K, to the phase input of E and Q (Fourier
             features, for sharper timing); 0 feeds the raw phase t only, as in the paper.
         min_std: Floor of the predicted σ (normalized units): σ = min_std + softplus(raw).
+        n_experts: K, the number of query networks (experts). 1 (default): the paper's CNMP, one Gaussian
+            decoder. K > 1: CNEP's mixture decoder (Yildirim & Ugur, arXiv 2402.08424): K decoders over the
+            same representation r and a gate π(r) = softmax(W r + b) over them, trained with
+            Σ_k π_k NLL_k + the two entropy terms below (``CNMP.mixture_loss``). Use it when the
+            demonstrations have modes the conditions do not decide (a single decoder averages them).
+        mixture_nll: How the experts' NLLs combine through the gate (``CNMP.mixture_loss``): ``"likelihood"``
+            (default: the mixture likelihood -log Σ_k π_k Π_q N_k, π a posterior, e.g. ~1/4 each for four
+            modes the context does not tell apart) or ``"cnep"`` (CNEP's expected NLL Σ_k π_k NLL_k: the gate
+            learns a hard choice everywhere, and an ambiguous context gets one expert that averages its modes;
+            on the sine benchmark 0.074 against 0.022 for the likelihood, README "Mixture decoder").
+        gate_entropy_coef: Weight of the per-episode gate entropy mean_b H(π_b) / log K, *added* to the loss:
+            each context should commit to one expert. CNEP's 7.553, relative to its NLL weight, is 0.62; with
+            the likelihood that collapses ambiguous contexts onto one averaging expert (weights task: 0.89 on
+            one expert before the grasp), 0 leaves informative contexts uncommitted (after the lift max π
+            0.54-0.85): 0.2 is between (README "Mixture decoder").
+        batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
+            batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
+        expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
+            first step, follow the most probable expert (``"most_probable"``) or one drawn from π
+            (``"sample"``, e.g. to spread choices over equally likely modes).
+        mode_switch_margin: Execution with K > 1: the followed expert c is kept while no expert is more
+            probable than it by more than this margin after re-conditioning on the fed-back SM; when
+            π_k* - π_c > margin (k* = argmax π), the policy switches to k* (a hysteresis: small flickers of π
+            do not make it jump between modes). In [0, 1).
         n_max_context: Most observations sampled from a demonstration per training sample (n ~ U{1..n_max}).
         m_max_targets: Most query points per training sample (m ~ U{1..m_max}); the paper uses 1.
         context_in_targets: Also use the sampled observations as queries (as the CNPs of Garnelo et al. do),
@@ -69,6 +93,18 @@ class CNMPConfig(PreTrainedConfig):
             of the SM dimensions, so the model can be conditioned on any subset of dimensions.
         sensed_obs_prob: Probability that a sampled observation (not already a partial one) constrains exactly
             the sensed dims, as execution's feedback does (joint layout only; the tied layout senses every dim).
+        feedback_draw_weight: Weight w of *execution-shaped* draws in the loss (joint layout; 0: none, the
+            paper). Execution conditions on the sensed dims at the first step (t = 0, with
+            ``condition_on_start``) and at the current phase τ, and commands the action predicted at τ. A random
+            draw rarely has that shape: its query at τ shares the aggregated representation with observations
+            at other phases. With w > 0 each step also draws, per draw, exactly that context (the sensed dims at
+            the episode's first frame and at a uniform frame j) with queries at j, j + 1 and ``m_max_targets``
+            uniform frames; loss = (1 - w) NLL(random draws) + w NLL(execution-shaped draws). Use it when the
+            action depends sharply on the sensed state (a reactive demonstrator, delta actions).
+        nll_beta: β of the β-NLL (Seitzer et al., ICLR 2022): each SM dim's NLL term is weighted by
+            stop_gradient(σ^(2β)). 0 is the paper's NLL. With the plain NLL the mean's gradient is scaled by
+            1/σ², so a dim the model finds hard early (large σ) stops being fitted and stays blurred; β = 0.5
+            keeps fitting it. Training only: prediction and execution are unchanged.
         draws_per_sample: Independent (observations, queries) draws made from each sampled episode per step:
             the loss sees batch_size x draws_per_sample draws. Every draw takes its frames from the whole
             episode (:mod:`lerobot_cnmp.bank`), so this only multiplies the training signal per loaded sample
@@ -117,13 +153,23 @@ class CNMPConfig(PreTrainedConfig):
     min_std: float = 0.01
     phase_frequencies: int = 0
 
+    # Mixture decoder (CNEP): K experts and a gate; K = 1 is the plain CNMP.
+    n_experts: int = 1
+    gate_entropy_coef: float = 0.2
+    batch_entropy_coef: float = 0.88
+    mixture_nll: str = "likelihood"
+    expert_selection: str = "most_probable"
+    mode_switch_margin: float = 0.3
+
     # Training-step sampling.
     n_max_context: int = 8
     m_max_targets: int = 16
     context_in_targets: bool = True
     partial_obs_prob: float = 0.25
     sensed_obs_prob: float = 0.5
+    feedback_draw_weight: float = 0.0
     draws_per_sample: int = 1
+    nll_beta: float = 0.0
 
     # The SM space (lerobot_cnmp.sm_spec) and task parameters γ.
     sm: tuple[str, ...] | None = None
@@ -196,6 +242,18 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"encoder_layers must be non-empty positive widths, got {self.encoder_layers}")
         if min(self.decoder_layers, default=1) < 1:
             raise ValueError(f"decoder_layers must be positive widths, got {self.decoder_layers}")
+        if isinstance(self.n_experts, bool) or int(self.n_experts) != self.n_experts or self.n_experts < 1:
+            raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {self.n_experts}")
+        self.n_experts = int(self.n_experts)
+        if self.gate_entropy_coef < 0 or self.batch_entropy_coef < 0:
+            raise ValueError(f"gate_entropy_coef and batch_entropy_coef must be >= 0, got {self.gate_entropy_coef}, "
+                             f"{self.batch_entropy_coef}")
+        if self.mixture_nll not in ("cnep", "likelihood"):
+            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
+        if self.expert_selection not in ("most_probable", "sample"):
+            raise ValueError(f"expert_selection must be 'most_probable' or 'sample', got {self.expert_selection!r}")
+        if not 0.0 <= self.mode_switch_margin < 1.0:
+            raise ValueError(f"mode_switch_margin must be in [0, 1), got {self.mode_switch_margin}")
         if self.phase_frequencies < 0:
             raise ValueError(f"phase_frequencies must be >= 0, got {self.phase_frequencies}")
         if not self.min_std > 0:
@@ -210,6 +268,10 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
         if self.draws_per_sample < 1:
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
+        if not 0.0 <= self.feedback_draw_weight <= 1.0:
+            raise ValueError(f"feedback_draw_weight must be in [0, 1], got {self.feedback_draw_weight}")
+        if not 0.0 <= self.nll_beta <= 1.0:
+            raise ValueError(f"nll_beta must be in [0, 1], got {self.nll_beta}")
         if self.demo_duration_s is not None and not self.demo_duration_s > 0:
             raise ValueError(f"demo_duration_s must be > 0, got {self.demo_duration_s}")
         if self.dataset_fps is not None and not self.dataset_fps > 0:

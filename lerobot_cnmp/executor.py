@@ -41,6 +41,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from lerobot_cnmp.modes import ModeSelector
+
 from lerobot.utils.constants import OBS_ENV_STATE
 
 from lerobot_cnmp.conditions import decode_conditions
@@ -354,6 +356,8 @@ class CNMPExecutor:
         self.last_chunk_phase: Tensor | None = None
         self.last_chunk_step: int | None = None  # the caller's timestep of the last chunk's first action
         self.last_std: Tensor | None = None  # σ of the last action(s) returned, dataset units
+        c = self.config
+        self.modes = ModeSelector(c.mode_switch_margin, c.expert_selection)  # which expert is followed (K > 1)
 
     def _ensure_state(self, batch: dict[str, Tensor]) -> int:
         ref = next((v for k, v in batch.items() if isinstance(v, Tensor) and k.startswith("observation.")), None)
@@ -549,7 +553,13 @@ class CNMPExecutor:
     def predict(self, context: Context, queries: Tensor) -> tuple[Tensor, Tensor]:
         """(μ, σ) of the SM at ``queries`` [B, M] given ``context`` (normalized units), [B, M, D] each. The one
         place execution calls the network."""
-        return self.policy.network()(context, queries)
+        model = self.policy.model
+        if model.n_experts == 1:
+            return self.policy.network()(context, queries)
+        from lerobot_cnmp.modeling_cnmp import pick_expert  # (modeling imports this module)
+
+        means, stds, probs = model.mixture(context, queries)
+        return pick_expert(means, stds, self.modes(probs))
 
     # ---- the loop's pieces ----------------------------------------------------------------------------------
 

@@ -6,6 +6,9 @@ Read top-down:
    in the batch, n ~ U{1..n_max} observations (t_i, SM(t_i)) and m ~ U{1..m_max} queries (t_q, SM(t_q)).
 2. ``CNMP`` -- pure torch:  r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i]);  r = mean_i r_i  (``aggregate``);
    (μ_q, σ_q) = Q([t_q, γ, r])  (``decode``);  loss = -log N(SM(t_q) | μ_q, σ_q)  (``nll``, Eq. 1).
+   With ``n_experts`` K > 1 (CNEP, Yildirim & Ugur 2024): K query networks Q_1..Q_K over the same r and a gate
+   π = softmax(W_g r + b_g); loss = -log Σ_k π_k Π_q N_k (or CNEP's Σ_k π_k NLL_k) + gate entropy terms
+   (``mixture_loss``); see ``CNMP``.
 3. ``CNMPPolicy`` -- the LeRobot face: turns ``lerobot-train`` batches into episode samples for (1)-(2);
    execution (condition on goals + current state, predict the next SM) is :mod:`lerobot_cnmp.executor`.
 
@@ -176,8 +179,37 @@ class ConvEncoder(nn.Module):
         return self.project(self.conv(images).flatten(1))
 
 
+class ExpertMLPs(nn.Module):
+    """K query networks Q_1..Q_K of one shape, their weights stacked so that each layer of all K experts is
+    one batched matmul: ``weights[l]`` [K, out, in], ``biases[l]`` [K, out] (each expert initialized as
+    ``nn.Linear`` initializes itself). ReLU between layers, none after the last, as :func:`mlp`."""
+
+    def __init__(self, n_experts: int, in_dim: int, widths: tuple[int, ...]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for w in widths:
+            layers = [nn.Linear(in_dim, w) for _ in range(n_experts)]
+            self.weights.append(nn.Parameter(torch.stack([m.weight.data for m in layers])))
+            self.biases.append(nn.Parameter(torch.stack([m.bias.data for m in layers])))
+            in_dim = w
+
+    def forward(self, h: Tensor, start: int = 0) -> Tensor:
+        """[K, N, in] -> [K, N, out]: layers ``start`` on (``h``: layer start - 1's output, before its ReLU)."""
+        for i in range(start, len(self.weights)):
+            if i > 0:
+                h = F.relu(h)
+            h = torch.baddbmm(self.biases[i][:, None, :], h, self.weights[i].transpose(1, 2))
+        return h
+
+
 class CNMP(nn.Module):
-    """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch)."""
+    """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch).
+
+    ``n_experts`` K > 1 is CNEP's mixture decoder (Yildirim & Ugur, "Conditional Neural Expert Processes",
+    arXiv 2402.08424): K query networks ("experts") Q_k over the same representation r and a gate
+    π(r) = softmax(W_g r + b_g) over them (``decoders``, ``gate``). The experts predict (μ_k, σ_k) each; the
+    gate says which of them the context r belongs to. ``forward`` / ``decode`` then return the most probable
+    expert's (μ, σ); ``mixture`` returns all of them with π. K = 1 is the plain CNMP (``decoder``)."""
 
     def __init__(
         self,
@@ -187,15 +219,36 @@ class CNMP(nn.Module):
         decoder_layers: tuple[int, ...] = (128, 128, 128),
         min_std: float = 0.01,
         phase_frequencies: int = 0,
+        n_experts: int = 1,
+        gate_entropy_coef: float = 0.2,
+        batch_entropy_coef: float = 0.88,
+        mixture_nll: str = "likelihood",
+        nll_beta: float = 0.0,
     ):
         super().__init__()
+        if int(n_experts) != n_experts or n_experts < 1:
+            raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {n_experts}")
         self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
+        self.n_experts = int(n_experts)
+        if mixture_nll not in ("cnep", "likelihood"):
+            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {mixture_nll!r}")
+        if nll_beta and self.n_experts > 1:
+            raise ValueError(f"nll_beta (β-NLL) applies to the single decoder: use n_experts=1 or nll_beta=0, got "
+                             f"n_experts={n_experts}, nll_beta={nll_beta}")
+        self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
+        self.mixture_nll = mixture_nll
+        self.nll_beta = nll_beta
         self.register_buffer(
             "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
         )
         t_dim = 1 + 2 * phase_frequencies
         self.encoder = mlp(t_dim + task_dim + 2 * sm_dim, tuple(encoder_layers))
-        self.decoder = mlp(t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+        q_in, q_widths = t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim)
+        if self.n_experts == 1:  # the plain CNMP: today's parameter names, so its checkpoints load
+            self.decoder = mlp(q_in, q_widths)
+        else:  # CNEP: K experts and the gate over them, both reading the same r
+            self.decoders = ExpertMLPs(self.n_experts, q_in, q_widths)
+            self.gate = nn.Linear(encoder_layers[-1], self.n_experts)
 
     def phase_features(self, t: Tensor) -> Tensor:
         """[..., 1 + 2K]: t itself, plus sin / cos of k·π·t for k = 1..K (none by default, as in the paper)."""
@@ -236,10 +289,14 @@ class CNMP(nn.Module):
 
     def decode(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(μ, σ) = Q(t_q, γ, r) for every query phase, each [B, M, D]; σ = min_std + softplus(.).
+        With K > 1 experts: the most probable expert's (μ_k*, σ_k*), k* = argmax_k π_k(r).
 
         Q's first layer is linear in its input [t_q, γ, r], so it is computed as W_t·t_q + (W_γr·[γ, r] + b):
         the second term once per episode, not once per query (a 200-query trajectory costs little more than
         its last layers)."""
+        if self.n_experts > 1:
+            means, stds = self.decode_experts(r, query_phase, task_params)
+            return pick_expert(means, stds, self.gate_probs(r).argmax(dim=-1))
         first = self.decoder[0]
         t_dim = 1 + 2 * self.frequencies.numel()
         per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
@@ -250,6 +307,30 @@ class CNMP(nn.Module):
         mean, raw = out.split(self.sm_dim, dim=-1)
         return mean, self.min_std + F.softplus(raw)
 
+    def gate_probs(self, r: Tensor) -> Tensor:
+        """π(r) = softmax(W_g r + b_g): each expert's probability of being the context's mode, [B, K]."""
+        if self.n_experts == 1:
+            return torch.ones(r.shape[0], 1, dtype=r.dtype, device=r.device)
+        return torch.softmax(self.gate(r), dim=-1)
+
+    def decode_experts(self, r: Tensor, query_phase: Tensor, task_params: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor]:
+        """(μ_k, σ_k) = Q_k(t_q, γ, r) of every expert k, each [B, K, M, D] (first layer split as in ``decode``)."""
+        if self.n_experts == 1:
+            mean, std = self.decode(r, query_phase, task_params)
+            return mean[:, None], std[:, None]
+        q = self.decoders
+        t_dim = 1 + 2 * self.frequencies.numel()
+        w0, b0 = q.weights[0], q.biases[0]  # [K, H, in], [K, H]
+        per_episode = self._inputs([], [r[:, None, :]], task_params, 1)[:, 0]  # [B, G + R]
+        per_episode = torch.einsum("bi,khi->kbh", per_episode, w0[:, :, t_dim:]) + b0[:, None, :]  # [K, B, H]
+        per_query = torch.einsum("bmi,khi->kbmh", self.phase_features(query_phase), w0[:, :, :t_dim])
+        h = per_episode[:, :, None, :] + per_query  # [K, B, M, H]
+        k, b, m, width = h.shape
+        out = q(h.reshape(k, b * m, width), start=1).reshape(k, b, m, 2 * self.sm_dim).transpose(0, 1)
+        mean, raw = out.split(self.sm_dim, dim=-1)
+        return mean, self.min_std + F.softplus(raw)
+
     def condition(self, context: Context) -> Tensor:
         """The representation r of a context (encode + aggregate)."""
         return self.aggregate(self.encode(context), context.valid)
@@ -257,23 +338,97 @@ class CNMP(nn.Module):
     def forward(self, context: Context, query_phase: Tensor) -> tuple[Tensor, Tensor]:
         return self.decode(self.condition(context), query_phase, context.task_params)
 
+    def mixture(self, context: Context, query_phase: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Every expert's prediction and probability: μ_k, σ_k [B, K, M, D] and π [B, K] (K = 1: π = 1)."""
+        r = self.condition(context)
+        means, stds = self.decode_experts(r, query_phase, context.task_params)
+        return means, stds, self.gate_probs(r)
+
     @staticmethod
-    def nll(mean: Tensor, std: Tensor, targets: Targets) -> Tensor:
-        """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries."""
+    def nll(mean: Tensor, std: Tensor, targets: Targets, beta: float = 0.0) -> Tensor:
+        """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries. With
+        ``beta`` > 0, the β-NLL: each dim's term weighted by stop_gradient(σ^(2β))."""
         per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
+        if beta:
+            per_dim = per_dim * std.detach() ** (2.0 * beta)
         per_query = per_dim.sum(dim=-1)
         w = targets.valid.to(per_query.dtype)
         return (per_query * w).sum() / w.sum().clamp(min=1.0)
 
+    @staticmethod
+    def nll_per_expert(means: Tensor, stds: Tensor, targets: Targets) -> Tensor:
+        """NLL_bk: Eq. 1 of expert k on episode b, summed over SM dims and averaged over its valid queries, [B, K]."""
+        y = targets.values[:, None]
+        per_dim = 0.5 * ((y - means) / stds) ** 2 + stds.log() + 0.5 * np.log(2 * np.pi)
+        w = targets.valid[:, None, :].to(per_dim.dtype)
+        return (per_dim.sum(dim=-1) * w).sum(dim=-1) / w.sum(dim=-1).clamp(min=1.0)
+
+    def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor) -> tuple[Tensor, dict]:
+        """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
+        the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
+
+            L = NLL_mix
+                + gate_entropy_coef  · mean_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
+                - batch_entropy_coef · H(mean_b π_b) / log K  -- high batch entropy: use every expert
+
+        with NLL_mix, by ``mixture_nll``:
+
+        * ``"cnep"`` (CNEP's ``models/cnep.py``, yildirimyigit/cnep): mean_b Σ_k π_bk NLL_bk, the expected NLL
+          under the gate. Its gradient moves the gate's whole mass to the expert that explains the episode
+          best (a hard choice, what execution commits to) and trains each expert on the episodes the gate
+          gives it. Where the context does not decide the mode it still commits (π is not a posterior).
+        * ``"likelihood"``: -mean_b (1/n_b) log Σ_k π_bk Π_q N(y_bq | μ_bkq, σ_bkq), the mixture likelihood of
+          the episode's queries (one mode per episode, so the product over queries sits inside the sum).
+          Each expert is trained with the posterior responsibility of the episode; π is calibrated: a
+          context shared by M modes gets π ≈ 1/M on them (the weights task before the grasp).
+
+        Entropies are divided by log K (1 for a uniform gate). CNEP's coefficients: its loss is
+        16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
+        (``scale_coefs``, mean over decoders); divided by its NLL weight 8.405 this is the form above with
+        7.553·log 2/8.405 = 0.62 and 10.672·log 2/8.405 = 0.88, for any K. (CNEP averages its NLL over SM
+        dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.) The
+        defaults, the likelihood with gate_entropy_coef 0.2 and CNEP's 0.88, are what the sine and weights
+        benchmarks favoured (``CNMPConfig``, README "Mixture decoder")."""
+        log_k = float(np.log(self.n_experts))
+        expected = (probs * nll_bk).sum(dim=-1).mean()
+        if self.mixture_nll == "cnep":
+            nll = expected
+        else:
+            n = n_queries.to(nll_bk.dtype).clamp(min=1.0)
+            log_lik = torch.logsumexp(probs.clamp(min=1e-12).log() - nll_bk * n[:, None], dim=-1)  # log Σ π Π N
+            nll = -(log_lik / n).mean()
+        ind_entropy = entropy(probs).mean() / log_k
+        batch_entropy = entropy(probs.mean(dim=0)) / log_k
+        loss = nll + self.gate_entropy_coef * ind_entropy - self.batch_entropy_coef * batch_entropy
+        return loss, {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
+                      "batch_entropy": batch_entropy.item()}
+
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
-        mean, std = self(context, targets.phase)
-        loss = self.nll(mean, std, targets)
+        if self.n_experts > 1:
+            means, stds, probs = self.mixture(context, targets.phase)
+            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1))
+            mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
+        else:
+            mean, std = self(context, targets.phase)
+            loss = self.nll(mean, std, targets, self.nll_beta)
+            info = {"nll": loss.item()}
         with torch.no_grad():
             w = targets.valid[..., None].to(mean.dtype)
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
-        return loss, {"nll": loss.item(), "mae": mae.item(), "std": mean_std.item()}
+        return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
+
+
+def entropy(p: Tensor) -> Tensor:
+    """H(p) = -Σ_k p_k log p_k over the last dim (0 log 0 = 0)."""
+    return -(p * p.clamp(min=1e-12).log()).sum(dim=-1)
+
+
+def pick_expert(means: Tensor, stds: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+    """Expert ``k[b]``'s (μ, σ) of each episode b: [B, K, M, D] -> [B, M, D] each."""
+    idx = k.long()[:, None, None, None].expand(-1, 1, *means.shape[2:])
+    return means.gather(1, idx)[:, 0], stds.gather(1, idx)[:, 0]
 
 
 class NumpyCNMP:
@@ -285,6 +440,10 @@ class NumpyCNMP:
     whenever the weights change. ``tests/test_model.py`` checks it against :class:`CNMP`."""
 
     def __init__(self, model: CNMP):
+        if model.n_experts != 1:
+            raise ValueError(f"NumpyCNMP copies a single-decoder CNMP; this one has {model.n_experts} experts "
+                             "(a mixture executes with the torch model)")
+
         def layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
             return [(m.weight.detach().cpu().numpy().T.copy(), m.bias.detach().cpu().numpy().copy())
                     for m in seq if isinstance(m, nn.Linear)]
@@ -392,6 +551,9 @@ class CNMPPolicy(PreTrainedPolicy):
     :class:`~lerobot_cnmp.executor.CNMPExecutor` (``self.executor``), which holds the execution state and its
     own settings (``config.execution``): the paper's loop of Sec. III / Fig. 3, chunks and RTC. The user's
     conditions: ``config.conditions`` (``--policy.conditions``) or :meth:`set_conditions`.
+    With a mixture (``n_experts`` > 1) the executor follows the expert that
+    :class:`~lerobot_cnmp.modes.ModeSelector` picks: chosen at the first step, switched only when
+    re-conditioning makes another expert more probable by ``mode_switch_margin``.
     """
 
     config_class = CNMPConfig
@@ -419,6 +581,11 @@ class CNMPPolicy(PreTrainedPolicy):
             decoder_layers=config.decoder_layers,
             min_std=config.min_std,
             phase_frequencies=config.phase_frequencies,
+            n_experts=config.n_experts,
+            gate_entropy_coef=config.gate_entropy_coef,
+            batch_entropy_coef=config.batch_entropy_coef,
+            mixture_nll=config.mixture_nll,
+            nll_beta=config.nll_beta,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec
@@ -428,6 +595,10 @@ class CNMPPolicy(PreTrainedPolicy):
         sensed_only[spec.sensed] = 1.0
         self.register_buffer("sensed_only_mask", None if spec.tied or not spec.sensed else sensed_only,
                              persistent=False)
+        if config.feedback_draw_weight > 0 and self.sensed_only_mask is None:
+            raise ValueError(
+                "feedback_draw_weight > 0 needs the joint layout with sensed dims (execution conditions on them); "
+                f"this SM is {'tied to the action' if spec.tied else 'commanded only'}: set it to 0")
         self.bank: EpisodeBank | None = None
         self._first_frames: FirstFrames | None = None
         if dataset_meta is not None:
@@ -495,8 +666,16 @@ class CNMPPolicy(PreTrainedPolicy):
         episode_index = episode_index.reshape(-1)
         values, phase = self.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
                                        generator)
-        gamma = self.bank.task_params_of(episode_index)
         values = self.normalizer.sm(values.to(dev))
+        valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
+        return Episodes(values, phase.to(dev), valid, self._training_inputs(episode_index, draws))
+
+    def _training_inputs(self, episode_index: Tensor, draws: int) -> Tensor | None:
+        """The episode-level input (normalized γ, the conv encoder's embedding of the first frame) of each named
+        episode, computed once and repeated over its ``draws``; None when there is neither."""
+        c = self.config
+        dev = self.normalizer.sm_std.device
+        gamma = self.bank.task_params_of(episode_index)
         parts = []
         if gamma is not None and c.task_dim:
             parts.append(self.normalizer.task(gamma.to(dev)))
@@ -508,8 +687,7 @@ class CNMPPolicy(PreTrainedPolicy):
         inputs = None if not parts else (parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1))
         if inputs is not None and draws > 1:
             inputs = inputs.repeat_interleave(draws, dim=0)
-        valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
-        return Episodes(values, phase.to(dev), valid, inputs)
+        return inputs
 
     def forward(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         c = self.config
@@ -520,7 +698,34 @@ class CNMPPolicy(PreTrainedPolicy):
             episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
             self.sensed_only_mask, c.sensed_obs_prob,
         )
-        return self.model.training_loss(context, targets)
+        loss, info = self.model.training_loss(context, targets)
+        w = c.feedback_draw_weight
+        if w > 0:
+            fb_loss, fb_info = self.model.training_loss(*self.feedback_draws(batch["episode_index"], generator))
+            info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
+            loss = (1.0 - w) * loss + w * fb_loss
+            info["nll"] = loss.item()
+        return loss, info
+
+    def feedback_draws(self, episode_index: Tensor, generator: torch.Generator | None = None) -> tuple[Context, Targets]:
+        """Execution-shaped draws (``feedback_draw_weight``), ``draws_per_sample`` per named episode: the
+        context is the sensed dims at the episode's first frame (with ``condition_on_start``) and at a uniform
+        frame j; the queries are j, j + 1 and ``m_max_targets`` uniform frames."""
+        c = self.config
+        dev = self.normalizer.sm_std.device
+        episode_index = episode_index.reshape(-1)
+        inputs = self._training_inputs(episode_index, c.draws_per_sample)
+        values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample),
+                                                c.m_max_targets, generator)
+        values, phase = self.normalizer.sm(values.to(dev)), phase.to(dev)
+        first = 0 if c.condition_on_start else 1
+        n_ctx = 2 - first
+        b = values.shape[0]
+        mask = self.sensed_only_mask[None, None, :].expand(b, n_ctx, -1)
+        context = Context(phase[:, first:2], values[:, first:2], mask,
+                          torch.ones(b, n_ctx, dtype=torch.bool, device=dev), inputs)
+        targets = Targets(phase[:, 1:], values[:, 1:], torch.ones(b, phase.shape[1] - 1, dtype=torch.bool, device=dev))
+        return context, targets
 
     def get_optim_params(self) -> dict:
         return self.parameters()
@@ -536,7 +741,8 @@ class CNMPPolicy(PreTrainedPolicy):
     def network(self):
         """The network that execution runs: the numpy copy on CPU (``execution.numpy_execution``, rebuilt
         whenever a weight changes), else the torch model."""
-        if not self.config.execution.numpy_execution or self.training or self.model.frequencies.device.type != "cpu":
+        if (not self.config.execution.numpy_execution or self.training or self.model.frequencies.device.type != "cpu"
+                or self.model.n_experts > 1):
             return self.model
         key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
         if self._numpy_key != key:

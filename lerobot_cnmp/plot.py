@@ -69,6 +69,25 @@ def plot_conditioned_xy(
     return out
 
 
+def plot_experts(ax, x: np.ndarray, means: np.ndarray, stds: np.ndarray, probs: np.ndarray, dim: int = 0,
+                 colors=None, min_alpha: float = 0.08) -> None:
+    """A mixture CNMP's experts on ``ax``: expert k's mean (and ± 2σ band) of SM dim ``dim`` over ``x``,
+    drawn with opacity and line width growing with its gate probability π_k (labelled in the legend).
+
+    ``means``/``stds`` [K, M, D], ``probs`` [K] (``CNMPModel.predict_mixture``). An expert of π_k ≈ 0 stays
+    faintly visible (``min_alpha``) so that what the gate rejected can be seen too."""
+    import matplotlib.pyplot as plt
+
+    colors = colors or plt.get_cmap("Dark2")
+    for k in np.argsort(probs):  # the most probable on top
+        p = float(probs[k])
+        color = colors(int(k)) if callable(colors) else colors[int(k)]
+        alpha = min_alpha + (1 - min_alpha) * p
+        m, s = means[k, :, dim], stds[k, :, dim]
+        ax.fill_between(x, m - 2 * s, m + 2 * s, color=color, alpha=0.15 * alpha, lw=0)
+        ax.plot(x, m, color=color, alpha=alpha, lw=0.8 + 2.4 * p, label=f"expert {k}: π = {p:.2f}")
+
+
 def mode_colors(demos: list[np.ndarray]) -> list[str]:
     """Blue for demos above the obstacle at mid-motion (mode +1), orange below (mode -1)."""
     return ["tab:blue" if d[len(d) // 2, 1] > 0 else "tab:orange" for d in demos]

@@ -90,14 +90,48 @@ def _frame_value(obs: dict, key: str, dtype: str) -> np.ndarray:
     return np.asarray(obs[key], dtype=np.float32)
 
 
-def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str) -> str:
+def parse_action_noise(text: str | float | list | None, action_dim: int) -> np.ndarray | None:
+    """``--action_noise``: one std for every action dim or one per dim ("0.3" or "0.3,0.3,0.3,0"); None or
+    all zeros: no noise."""
+    if text is None:
+        return None
+    if isinstance(text, str):
+        try:
+            vals = [float(x) for x in text.split(",") if x.strip()]
+        except ValueError as e:
+            raise ValueError(f"action_noise must be numbers separated by commas, got {text!r}") from e
+    else:
+        vals = [float(x) for x in np.atleast_1d(text)]
+    if len(vals) == 1:
+        vals = vals * action_dim
+    if len(vals) != action_dim:
+        raise ValueError(f"action_noise has {len(vals)} values; the action has {action_dim} dims (give 1 or {action_dim})")
+    noise = np.asarray(vals, dtype=np.float64)
+    if not np.isfinite(noise).all() or (noise < 0).any():
+        raise ValueError(f"action_noise must be finite and >= 0, got {vals}")
+    return noise if noise.any() else None
+
+
+def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str,
+             action_noise: str | None = None) -> str:
     cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
+    if action_noise is not None:
+        cmd += f" --action_noise {action_noise}"
     if repo_id != f"lerobot-cnmp/{sim}":
         cmd += f" --repo_id {repo_id}"
     spec = SIMS[sim]
     if conditions != spec.default_conditions:
         cmd += f" --conditions {conditions}"
     return cmd
+
+
+def _noise_note(action_noise: np.ndarray | None) -> str:
+    if action_noise is None:
+        return ""
+    return (f"\nRecorded with injected execution noise (DART, Laskey et al. 2017): the env executed the expert's "
+            f"action plus Gaussian noise of std {np.round(action_noise, 4).tolist()} per action dim (clipped to the "
+            f"action space), while `action` holds the expert's own, noise-free action at the state reached. The "
+            f"demos thus show how the expert recovers from deviations.\n")
 
 
 def _write_card(
@@ -115,6 +149,7 @@ def _write_card(
     kinds: list[str],
     command: str,
     elapsed_s: float,
+    action_noise: np.ndarray | None = None,
 ) -> None:
     counts = collections.Counter(labels)
     feat_rows = "\n".join(
@@ -172,7 +207,7 @@ Conditions used while recording: `{conditions}`.
 
 Each frame holds the observation *before* the action and the action commanded at that step (the
 position-servo target). {spec.features_note}
-
+{_noise_note(action_noise)}
 ## Regenerate
 
 ```bash
@@ -199,6 +234,7 @@ def record_dataset(
     overwrite: bool = False,
     conditions: str | None = None,
     progress: bool = True,
+    action_noise: str | float | list | None = None,
 ) -> Path:
     """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
 
@@ -212,6 +248,10 @@ def record_dataset(
         conditions: the sim's conditions choice, passed to its env config through
             ``SimSpec.config_kwargs`` (the sim's recording default when None).
         progress: show a tqdm progress bar.
+        action_noise: DART-style execution noise: the env executes the expert's action plus Gaussian noise of
+            this std (one value, or one per action dim; clipped to the action space), the dataset records the
+            expert's noise-free action. The expert must be a feedback controller (it acts on the state reached),
+            so the demos show recoveries from deviations. None: none. Noise draws are seeded by ``seed``.
 
     Raises:
         ValueError: unknown sim, ``n_episodes < 1``.
@@ -256,6 +296,8 @@ def record_dataset(
         env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
         base = env.unwrapped
         expert = spec.expert_cls(base, demo_length=spec.demo_length)
+        noise = parse_action_noise(action_noise, int(np.prod(env.action_space.shape)))
+        noise_rng = np.random.default_rng(seed)
         ds = LeRobotDataset.create(
             repo_id=repo_id,
             fps=cfg.fps,
@@ -278,7 +320,11 @@ def record_dataset(
                 frame["action"] = action
                 frame["task"] = task_str
                 frames.append(frame)
-                obs, _, terminated, truncated, info = env.step(action)
+                executed = action
+                if noise is not None:
+                    executed = np.clip(action + noise_rng.normal(0.0, noise).astype(np.float32),
+                                       env.action_space.low, env.action_space.high).astype(np.float32)
+                obs, _, terminated, truncated, info = env.step(executed)
                 if (terminated or truncated) and k < spec.demo_length - 1:
                     raise DemoFailedError(
                         f"episode {i} (seed {seed + i}) of {sim} ended after {k + 1} of {spec.demo_length} steps"
@@ -308,8 +354,10 @@ def record_dataset(
             conditions=conditions,
             labels=labels,
             kinds=kinds,
-            command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions),
+            command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
+                             None if noise is None else ",".join(f"{v:g}" for v in noise)),
             elapsed_s=elapsed_s,
+            action_noise=noise,
         )
         # swap in atomically: the old dataset (if any) is only removed once the new one is complete
         trash = None
@@ -363,6 +411,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repo_id", default=None, help="dataset repo id (default lerobot-cnmp/<sim>)")
     parser.add_argument("--conditions", default=None, help="the env's conditions option (sim default if omitted)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    parser.add_argument("--action_noise", default=None,
+                        help="DART execution noise: std of Gaussian noise added to the executed action, one value or "
+                             "one per action dim ('0.3' or '0.3,0.3,0.3,0'); the recorded action stays the expert's")
     parser.add_argument("--push_to_hub", action="store_true",
                         help="then push the dataset to the Hub as --repo_id (LeRobotDataset.push_to_hub, with its card)")
     parser.add_argument("--private", action="store_true", help="with --push_to_hub: a private repository")
@@ -390,6 +441,7 @@ def main(argv: list[str] | None = None) -> int:
             repo_id=args.repo_id,
             overwrite=args.overwrite,
             conditions=args.conditions,
+            action_noise=args.action_noise,
         )
     except (FileExistsError, DemoFailedError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -405,3 +405,63 @@ def test_sm_declared_by_dim_names_resolves_to_canonical_indices(root, meta):
     torch.testing.assert_close(sensed[0, 7:], expected)
     assert bool((sensed[0, :7] == 0).all())
     assert policy.select_action(obs).shape == (1, 7)
+
+
+# ---- training options for reactive demonstrators: execution-shaped draws, β-NLL --------------------------
+
+
+def test_feedback_draws_have_the_shape_of_execution(root, meta):
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=0.5,
+                     draws_per_sample=3, m_max_targets=4)
+    policy = make_policy(cfg, ds_meta=meta)
+    gen = torch.Generator().manual_seed(0)
+    eps = torch.tensor([0, 3])
+    context, targets = policy.feedback_draws(eps, gen)
+    assert context.phase.shape == (6, 2) and targets.phase.shape == (6, 2 + 4)
+    assert torch.equal(context.phase[:, 0], torch.zeros(6))  # the start, as condition_on_start gives it
+    assert torch.equal(targets.phase[:, 0], context.phase[:, 1])  # the query "now" is the sensed point's phase
+    step = targets.phase[:, 1] - targets.phase[:, 0]  # "next": one frame later (or the last frame itself)
+    lengths = policy.bank.lengths[policy.bank.rows(eps.repeat_interleave(3))].float()
+    last = targets.phase[:, 0] == 1
+    assert torch.all(torch.where(last, step.abs(), (step - 1 / (lengths - 1)).abs()) < 1e-5)
+    sensed = torch.zeros(cfg.sm_dim)
+    sensed[cfg.spec.sensed] = 1
+    assert torch.equal(context.mask, sensed.expand_as(context.mask))  # the sensed dims only, never an action
+    assert torch.allclose(context.values[:, 1], targets.values[:, 0])
+    assert torch.allclose(context.task_params, policy.normalizer.task(policy.bank.task_params_of(eps)).repeat_interleave(3, 0))
+    loss, info = policy.forward({"episode_index": eps}, generator=torch.Generator().manual_seed(1))
+    assert torch.isfinite(loss) and {"nll_random", "nll_feedback"} <= set(info)
+    assert abs(info["nll"] - (0.5 * info["nll_random"] + 0.5 * info["nll_feedback"])) < 1e-4
+    loss.backward()  # both parts reach the weights
+
+
+def test_feedback_draws_need_sensed_dims_and_a_weight_in_0_1(meta):
+    with pytest.raises(ValueError, match="feedback_draw_weight must be in"):
+        CNMPConfig(feedback_draw_weight=1.5)
+    with pytest.raises(ValueError, match="nll_beta must be in"):
+        CNMPConfig(nll_beta=-0.1)
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=0.5,
+                     sm=("action",))
+    with pytest.raises(ValueError, match="feedback_draw_weight > 0 needs the joint layout with sensed dims"):
+        make_policy(cfg, ds_meta=meta)
+
+
+def test_beta_nll_weights_each_dim_by_the_detached_variance():
+    from lerobot_cnmp.modeling_cnmp import CNMP, Targets
+
+    g = torch.Generator().manual_seed(0)
+    mean = torch.randn(2, 5, 3, generator=g, requires_grad=True)
+    raw_std = torch.rand(2, 5, 3, generator=g) + 0.2
+    std = raw_std.clone().requires_grad_(True)
+    targets = Targets(torch.rand(2, 5, generator=g), torch.randn(2, 5, 3, generator=g), torch.ones(2, 5, dtype=torch.bool))
+    plain = CNMP.nll(mean, std, targets)
+    assert torch.equal(plain, CNMP.nll(mean, std, targets, beta=0.0))
+    per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
+    assert torch.allclose(plain, per_dim.sum(-1).mean())
+    beta1 = CNMP.nll(mean, std, targets, beta=1.0)
+    assert torch.allclose(beta1, (per_dim * raw_std ** 2).sum(-1).mean())
+    (grad_mean,) = torch.autograd.grad(beta1, mean)
+    # β = 1: the mean's gradient is the squared error's, whatever σ (the plain NLL's is scaled by 1/σ²)
+    assert torch.allclose(grad_mean, (mean - targets.values).detach() / 10)
+    (grad_plain,) = torch.autograd.grad(plain, mean)
+    assert not torch.allclose(grad_plain, grad_mean)

@@ -45,3 +45,38 @@ def test_first_below():
     pts = [(100, 1.0, 0.5), (200, 2.0, 0.02), (300, 3.0, 0.01)]
     assert first_below(pts, 0.03) == (200, 2.0)
     assert first_below(pts, 0.001) == (None, None)
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path):
+    import pytest
+    from common import MissingCheckpointError, resolve_checkpoint
+
+    with pytest.raises(MissingCheckpointError, match="--train"):
+        resolve_checkpoint(tmp_path / "nowhere", train=False, out_dir=tmp_path / "fit")
+    (tmp_path / "run" / "pretrained_model").mkdir(parents=True)
+    (tmp_path / "run" / "pretrained_model" / "config.json").write_text("{}")
+    with pytest.raises(MissingCheckpointError, match="did you mean"):
+        resolve_checkpoint(tmp_path / "run", train=False, out_dir=tmp_path / "fit")
+    assert resolve_checkpoint(tmp_path / "run" / "pretrained_model", train=False, out_dir=tmp_path) == \
+        tmp_path / "run" / "pretrained_model"
+
+
+def test_provenance_of_a_lerobot_train_checkpoint(tmp_path):
+    import json
+
+    from common import REPO, provenance
+
+    cfg = json.loads((REPO / "configs" / "cnmp_obstacle2d.json").read_text())
+    ckpt = tmp_path / "checkpoints" / "009000" / "pretrained_model"
+    ckpt.mkdir(parents=True)
+    (ckpt / "config.json").write_text("{}")
+    (ckpt / "model.safetensors").write_bytes(b"weights")
+    (ckpt / "train_config.json").write_text(json.dumps({**cfg, "output_dir": "outputs/x/train"}))
+    (ckpt.parent / "training_state").mkdir()
+    (ckpt.parent / "training_state" / "training_step.json").write_text(json.dumps({"step": 1234}))
+    p = provenance(ckpt)
+    assert p["step"] == 1234 and p["trained_by"] == "lerobot-train"
+    assert p["training_command"] == "lerobot-train --config_path=configs/cnmp_obstacle2d.json --output_dir=outputs/x/train"
+    assert len(p["weights_sha256"]) == 16
+    (ckpt / "train_config.json").write_text(json.dumps({**cfg, "seed": 7}))  # no committed config matches
+    assert "no committed config matches" in provenance(ckpt)["training_command"]

@@ -334,3 +334,198 @@ def test_numpy_executor_equals_the_torch_model(task_dim, freqs):
     n_mean, n_std = NumpyCNMP(m)(ctx, q)
     torch.testing.assert_close(n_mean, mean, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(n_std, std, atol=1e-5, rtol=1e-5)
+
+
+# ---- the mixture decoder (CNEP, n_experts K > 1) ----------------------------------------------------------
+
+
+def test_one_expert_is_todays_model_bit_for_bit():
+    """K = 1 (the default) keeps today's parameter names, initialization and outputs: the figures below were
+    computed by the code before the mixture existed (commit 53efd9f), same seed, same inputs."""
+    torch.manual_seed(0)
+    m = CNMP(sm_dim=2, task_dim=1, encoder_layers=(8, 8), decoder_layers=(8, 8))
+    assert m.n_experts == 1
+    assert sorted(m.state_dict()) == sorted(f"{n}.{i}.{p}" for n in ("encoder", "decoder") for i in (0, 2, 4)[: 3 if n == "decoder" else 2]
+                                            for p in ("weight", "bias"))
+    gen = torch.Generator().manual_seed(3)
+    ctx = Context(torch.rand(2, 3, generator=gen), torch.randn(2, 3, 2, generator=gen), torch.ones(2, 3, 2),
+                  torch.ones(2, 3, dtype=torch.bool), torch.randn(2, 1, generator=gen))
+    q = torch.rand(2, 2, generator=gen)
+    targets = Targets(q, torch.randn(2, 2, 2, generator=gen), torch.ones(2, 2, dtype=torch.bool))
+    mean, std = m(ctx, q)
+    before_mean = [[[0.048614129424095154, 0.027116576209664345], [0.04845230281352997, 0.028841551393270493]],
+                   [[0.04762108623981476, 0.028265612199902534], [0.04754894599318504, 0.029505781829357147]]]
+    before_std = [[[0.59080570936203, 0.7658947110176086], [0.5897484421730042, 0.7639021873474121]],
+                  [[0.5895143747329712, 0.7606388330459595], [0.5910351872444153, 0.7653103470802307]]]
+    torch.testing.assert_close(mean, torch.tensor(before_mean), rtol=0, atol=1e-7)
+    torch.testing.assert_close(std, torch.tensor(before_std), rtol=0, atol=1e-7)
+    loss, info = m.training_loss(ctx, targets)
+    assert loss.item() == pytest.approx(2.223935604095459, abs=1e-6) and set(info) == {"nll", "mae", "std"}
+    # the mixture view of a single decoder: one expert of probability 1, the same (μ, σ)
+    means, stds, probs = m.mixture(ctx, q)
+    assert torch.equal(means[:, 0], mean) and torch.equal(stds[:, 0], std) and torch.equal(probs, torch.ones(2, 1))
+
+
+@pytest.fixture(scope="module")
+def mixture_net():
+    torch.manual_seed(0)
+    return CNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3).eval()
+
+
+def test_mixture_shapes_gate_sums_to_one_and_decode_is_the_most_probable_expert(mixture_net):
+    ctx = random_context(b=5, g=1)
+    q = torch.rand(5, 7)
+    means, stds, probs = mixture_net.mixture(ctx, q)
+    assert means.shape == stds.shape == (5, 3, 7, 2) and probs.shape == (5, 3)
+    torch.testing.assert_close(probs.sum(-1), torch.ones(5))
+    assert bool((probs > 0).all()) and bool((stds >= mixture_net.min_std).all())
+    mean, std = mixture_net(ctx, q)
+    k = probs.argmax(-1)
+    torch.testing.assert_close(mean, means[torch.arange(5), k])
+    torch.testing.assert_close(std, stds[torch.arange(5), k])
+    # each expert is its own network: the experts' predictions differ
+    assert float((means[:, 0] - means[:, 1]).abs().max().detach()) > 1e-3
+
+
+def test_mixture_experts_equal_the_plain_networks(mixture_net):
+    """Expert k's stacked, first-layer-split computation is Q_k([t_q, γ, r]) with its own weights."""
+    m = mixture_net
+    ctx = random_context(b=2, g=1)
+    q = torch.rand(2, 4)
+    r = m.condition(ctx)
+    means, stds = m.decode_experts(r, q, ctx.task_params)
+    x = torch.cat([q[..., None], ctx.task_params[:, None].expand(-1, 4, -1), r[:, None].expand(-1, 4, -1)], -1)
+    for k in range(3):
+        h = x
+        for i, (w, b) in enumerate(zip(m.decoders.weights, m.decoders.biases, strict=True)):
+            h = torch.nn.functional.linear(h if i == 0 else torch.relu(h), w[k], b[k])
+        torch.testing.assert_close(means[:, k], h[..., :2])
+        torch.testing.assert_close(stds[:, k], m.min_std + torch.nn.functional.softplus(h[..., 2:]))
+    torch.testing.assert_close(m.gate_probs(r), torch.softmax(r @ m.gate.weight.T + m.gate.bias, -1))
+
+
+def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net):
+    ctx = random_context(b=3, n=5, g=1)
+    q = torch.rand(3, 4)
+    perm = torch.tensor([4, 2, 0, 3, 1])
+    shuffled = Context(ctx.phase[:, perm], ctx.values[:, perm], ctx.mask[:, perm], ctx.valid[:, perm], ctx.task_params)
+    pad = 3
+    padded = Context(
+        torch.cat([ctx.phase, torch.rand(3, pad)], 1), torch.cat([ctx.values, 100 * torch.randn(3, pad, 2)], 1),
+        torch.cat([ctx.mask, torch.ones(3, pad, 2)], 1),
+        torch.cat([ctx.valid, torch.zeros(3, pad, dtype=torch.bool)], 1), ctx.task_params)
+    ref = mixture_net.mixture(ctx, q)
+    for other in (shuffled, padded):
+        for a, b in zip(ref, mixture_net.mixture(other, q), strict=True):
+            torch.testing.assert_close(a, b)  # every expert's μ and σ, and the gate
+
+
+@pytest.mark.parametrize("form", ["cnep", "likelihood"])
+def test_mixture_loss_forms(mixture_net, form):
+    """cnep: Σ_k π_k NLL_k; likelihood: -(1/n) log Σ_k π_k Π_q N_kq; plus the two normalized entropy terms."""
+    ctx = random_context(b=4, g=1)
+    targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
+    targets.valid[:, 0] = True
+    default = mixture_net.mixture_nll
+    mixture_net.mixture_nll = form
+    try:
+        loss, info = mixture_net.training_loss(ctx, targets)
+    finally:
+        mixture_net.mixture_nll = default
+    means, stds, probs = mixture_net.mixture(ctx, targets.phase)
+    nll_bk = torch.stack([torch.stack([
+        CNMP.nll(means[b:b + 1, k], stds[b:b + 1, k], Targets(targets.phase[b:b + 1], targets.values[b:b + 1],
+                                                               targets.valid[b:b + 1])) for k in range(3)])
+        for b in range(4)])  # Eq. 1 of expert k on episode b
+    n = targets.valid.sum(-1).float()
+    if form == "cnep":
+        nll = (probs * nll_bk).sum(-1).mean()
+    else:
+        nll = -(torch.log((probs * torch.exp(-nll_bk * n[:, None])).sum(-1)) / n).mean()
+    h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
+    c_ind, c_batch = mixture_net.gate_entropy_coef, mixture_net.batch_entropy_coef
+    assert (c_ind, c_batch) == (CNMPConfig.gate_entropy_coef, CNMPConfig.batch_entropy_coef) == (0.2, 0.88)
+    want = nll + c_ind * h(probs).mean() / np.log(3) - c_batch * h(probs.mean(0)) / np.log(3)
+    torch.testing.assert_close(loss, want)
+    assert info["nll"] == pytest.approx(nll.item(), rel=1e-5)
+    assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
+
+
+@pytest.mark.parametrize("k", [0, -2, 1.5])
+def test_bad_number_of_experts_is_a_clear_error(k):
+    with pytest.raises(ValueError, match="n_experts"):
+        CNMPConfig(n_experts=k)
+    with pytest.raises(ValueError, match="n_experts"):
+        CNMP(sm_dim=2, n_experts=k)
+
+
+@pytest.mark.parametrize("field, value", [("gate_entropy_coef", -0.1), ("batch_entropy_coef", -1.0),
+                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0),
+                                          ("mixture_nll", "mse")])
+def test_bad_mixture_settings(field, value):
+    with pytest.raises(ValueError, match=field):
+        CNMPConfig(**{field: value})
+
+
+def test_numpy_copy_refuses_a_mixture(mixture_net):
+    with pytest.raises(ValueError, match="experts"):
+        NumpyCNMP(mixture_net)
+
+
+@pytest.fixture(scope="module")
+def fitted_mixture():
+    """Two experts on the two-mode toy (bump up / bump down, same start and end)."""
+    torch.manual_seed(0)
+    return CNMPModel(encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=2).fit(
+        toy_demos(n=16), steps=800, batch_size=16, progress=False)
+
+
+def test_mixture_separates_the_two_modes(fitted_mixture):
+    """Given a point of one mode the gate commits to one expert, and that expert draws that mode; the two
+    modes go to different experts. The single-decoder CNMP's answer to the shared start alone is the
+    average of the modes; the mixture's experts are the modes themselves."""
+    q = np.linspace(0, 1, 50)
+    up = fitted_mixture.predict_mixture(q, [Condition(0.5, (0.5, 0.4))])
+    down = fitted_mixture.predict_mixture(q, [Condition(0.5, (0.5, -0.4))])
+    for (means, _, probs), sign in ((up, 1), (down, -1)):
+        k = int(probs.argmax())
+        assert probs[k] > 0.9
+        assert sign * means[k, 25, 1] > 0.25  # the chosen expert's mid-point is on that mode's side
+        mean, _ = fitted_mixture.predict(q, [Condition(0.5, (0.5, 0.4 * sign))])
+        np.testing.assert_array_equal(mean, means[k])  # predict = the most probable expert
+    assert int(up[2].argmax()) != int(down[2].argmax())
+    means, _, probs = fitted_mixture.predict_mixture(q, [Condition(0.0, (0.0, 0.0))])
+    assert sorted(np.sign(means[:, 25, 1]).tolist()) == [-1.0, 1.0]  # shared start: both modes are experts
+    np.testing.assert_allclose(probs.sum(), 1.0, rtol=1e-6)
+
+
+def test_predict_a_chosen_expert_and_bad_expert(fitted_mixture):
+    q = np.linspace(0, 1, 9)
+    conds = [Condition(0.0, (0.0, 0.0))]
+    means, stds, _ = fitted_mixture.predict_mixture(q, conds)
+    for k in range(2):
+        mean, std = fitted_mixture.predict(q, conds, expert=k)
+        np.testing.assert_array_equal(mean, means[k])
+        np.testing.assert_array_equal(std, stds[k])
+    with pytest.raises(ValueError, match="expert"):
+        fitted_mixture.predict(q, conds, expert=2)
+
+
+def test_mixture_save_load_bit_identical(fitted_mixture, tmp_path):
+    fitted_mixture.save(tmp_path / "mix")
+    loaded = CNMPModel.load(tmp_path / "mix")
+    assert loaded.config.n_experts == 2
+    conds = [Condition(0.3, (0.3, 0.2))]
+    q = np.linspace(0, 1, 33)
+    for a, b in zip(fitted_mixture.predict_mixture(q, conds), loaded.predict_mixture(q, conds), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_api_fit_with_a_seed_is_reproducible_from_initialization_on():
+    from lerobot_cnmp.api import CNMPModel
+
+    demos = np.sin(np.linspace(0, 3, 20))[None, :, None].repeat(3, 0) + np.arange(3)[:, None, None]
+    fits = [CNMPModel(encoder_layers=(16, 16), decoder_layers=(16, 16)).fit(demos, steps=5, batch_size=2, seed=3,
+                                                                            progress=False) for _ in range(2)]
+    a, b = (torch.cat([p.detach().reshape(-1) for p in f.policy.parameters()]) for f in fits)
+    assert torch.equal(a, b)

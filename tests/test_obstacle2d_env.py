@@ -107,7 +107,7 @@ def test_conditions_encoded_and_constant(conditions):
         obs, _ = env.reset(seed=seed)
         decoded = conditions_from_vector(obs["environment_state"], sm_dim=2)
         assert _normalize(decoded) == _normalize(env.conditions)
-        assert 1 <= len(env.conditions) <= 2
+        assert 1 <= len(env.conditions) <= (3 if conditions == "start_goal_early" else 2)
         obs2, *_ = env.step(env.task.position(0.01))
         np.testing.assert_array_equal(obs["environment_state"], obs2["environment_state"])
         # the conditions lie on the hidden reference
@@ -262,3 +262,98 @@ def test_gym_make_and_lerobot_make_env():
         assert frames[0].shape == (256, 256, 3)
     finally:
         vec.close()
+
+
+# --- the shared family, the new pushes and the rate-limited actuator (issue 16) --------------------------
+
+def test_shared_family_modes_share_start_and_goal_and_keep_clearance():
+    from lerobot_cnmp.envs.obstacle2d import SHARED_Y0_RANGE
+
+    rng = np.random.default_rng(0)
+    tau = np.linspace(0.0, 1.0, 2001)
+    worst, y0s = np.inf, {1: [], -1: []}
+    for _ in range(400):
+        task = Obstacle2DTask.sample(rng, family="shared")
+        assert SHARED_Y0_RANGE[0] <= task.y0 <= SHARED_Y0_RANGE[1] and np.sign(task.h) == task.mode
+        np.testing.assert_allclose(task.goal, [1.0, task.y0])
+        y0s[task.mode].append(task.y0)
+        xy = task.position(tau)
+        worst = min(worst, (np.linalg.norm(xy - OBSTACLE_CENTER, axis=-1) - OBSTACLE_RADIUS - AGENT_RADIUS).min())
+    assert worst >= 0.05, worst
+    # both modes cover the same start heights: a start (or goal) does not name the mode
+    assert abs(np.mean(y0s[1]) - np.mean(y0s[-1])) < 0.03 and min(map(len, y0s.values())) > 150
+    # their average runs through the obstacle
+    over, under = Obstacle2DTask(1, 0.0, 0.55, 1.2), Obstacle2DTask(-1, 0.0, -0.55, 1.2)
+    mean = (over.position(tau) + under.position(tau)) / 2
+    assert (np.linalg.norm(mean - OBSTACLE_CENTER, axis=-1) < OBSTACLE_RADIUS).any()
+
+
+@pytest.mark.parametrize("conditions", ["random", "start_goal", "start_goal_early"])
+def test_shared_family_expert_succeeds(conditions):
+    env = Obstacle2DEnv(conditions=conditions, family="shared", terminate_on_success=False, render_mode=None)
+    for seed in range(4):
+        _, infos = run_expert(env, seed)
+        assert infos[-1]["is_success"], (seed, infos[-1])
+        if conditions.startswith("start_goal"):
+            c = env.conditions
+            assert c[0].phase == 0.0 and c[1].phase == 1.0 and c[0].values[1] == pytest.approx(c[1].values[1])
+            assert len(c) == (3 if conditions == "start_goal_early" else 2)
+            if len(c) == 3:
+                assert 0.15 <= c[2].phase <= 0.3
+
+
+def test_shared_family_rejects_the_paper_sets():
+    for conditions in ("mixed", "paper_via", "paper_early", "paper_end"):
+        with pytest.raises(ValueError, match="mirrored"):
+            Obstacle2DEnv(conditions=conditions, family="shared")
+        with pytest.raises(ValueError, match="mirrored"):
+            CNMPObstacle2DEnv(conditions=conditions, family="shared")
+    with pytest.raises(ValueError, match="family"):
+        CNMPObstacle2DEnv(conditions="random", family="overlap")
+    with pytest.raises(ValueError, match="actuator"):
+        Obstacle2DEnv(actuator="motor")
+    cfg = CNMPObstacle2DEnv(conditions="random", family="shared", actuator="rate_limited", perturbation="push_toward")
+    assert cfg.gym_kwargs["family"] == "shared" and cfg.gym_kwargs["actuator"] == "rate_limited"
+
+
+@pytest.mark.parametrize("perturbation", ["push_toward", "push_random"])
+def test_new_pushes(perturbation):
+    from lerobot_cnmp.envs.obstacle2d import PUSH_MIN_CLEARANCE
+
+    base = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
+    env = Obstacle2DEnv(conditions="random", perturbation=perturbation, terminate_on_success=False, render_mode=None)
+    toward = []
+    for seed in range(6):
+        ref, _ = run_expert(base, seed)
+        traj, infos = run_expert(env, seed)
+        assert env.task == base.task
+        k = int(np.argmax([i["perturbed"] for i in infos]))
+        assert 50 <= k <= 120
+        np.testing.assert_array_equal(traj[:k], ref[:k])
+        jump = traj[k] - ref[k]
+        assert 0.0 < np.linalg.norm(jump) <= PUSH_DISTANCE + 1e-6
+        clear = np.linalg.norm(traj[k] - OBSTACLE_CENTER) - OBSTACLE_RADIUS - AGENT_RADIUS
+        assert clear >= PUSH_MIN_CLEARANCE - 1e-6
+        toward.append(np.dot(jump, OBSTACLE_CENTER - ref[k]) / np.linalg.norm(jump) / np.linalg.norm(OBSTACLE_CENTER - ref[k]))
+    if perturbation == "push_toward":
+        assert min(toward) > 0.999
+    else:  # random directions: not all toward, not all away
+        assert min(toward) < 0 < max(toward)
+
+
+def test_rate_limited_actuator_lags_and_open_loop_falls_behind():
+    from lerobot_cnmp.envs.obstacle2d import CONTROL_FPS, RATE_LIMIT
+
+    servo = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
+    lagging = Obstacle2DEnv(conditions="random", actuator="rate_limited", terminate_on_success=False, render_mode=None)
+    behind, fails = [], 0
+    for seed in range(8):
+        ref, ref_infos = run_expert(servo, seed, steps=300)
+        traj, infos = run_expert(lagging, seed, steps=300)
+        assert ref_infos[-1]["is_success"]
+        speed = np.linalg.norm(np.diff(traj, axis=0), axis=1) * CONTROL_FPS
+        assert speed.max() <= RATE_LIMIT * 1.1  # the servo follows its set point, which moves at most RATE_LIMIT
+        behind.append(np.linalg.norm(traj[100] - ref[100]))
+        fails += not any(i["is_success"] for i in infos)
+    assert min(behind) > 0.05  # halfway through the demo schedule the lagging body is well behind
+    assert fails >= 6  # the expert's schedule replayed open loop misses the conditions

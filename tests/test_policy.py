@@ -596,3 +596,37 @@ def test_image_config_errors():
         CNMPPolicy(cfg)
     off = image_config(use_images=False)
     assert off.image_keys == [] and CNMPPolicy(off).model.task_dim == 0
+
+
+def test_mixture_policy_follows_the_committed_expert_and_loads_bit_identically(meta, tmp_path):
+    """n_experts > 1: select_action commands the expert the mode rule follows (first step: the most probable),
+    runs the torch model, and save_pretrained -> from_pretrained executes bit-identically."""
+    policy = make_policy(small_config(n_experts=3), ds_meta=meta)
+    policy.eval()
+    assert {"decoders.weights.0", "gate.weight"} <= set(policy.model.state_dict())
+    assert policy.network() is policy.model  # no numpy copy of a mixture
+    obs = _obs(2, seed=3)
+    policy.reset()
+    ctx = policy.executor.execution_context(dict(obs), torch.zeros(2))
+    means, _, probs = policy.model.mixture(ctx, torch.zeros(2, 1))
+    policy.reset()
+    action = policy.select_action(dict(obs))
+    k = probs.argmax(-1)
+    assert torch.equal(policy.executor.modes.current, k)
+    # tied layout, kp = 1, kd = 0: the command is the followed expert's μ(τ = 0)
+    torch.testing.assert_close(action, policy.normalizer.sm_inverse(means[torch.arange(2), k, 0]))
+    actions = [action] + [policy.select_action(dict(obs)) for _ in range(4)]
+    ckpt = tmp_path / "mixture"
+    policy.save_pretrained(ckpt)
+    loaded = CNMPPolicy.from_pretrained(ckpt)
+    loaded.eval()
+    assert loaded.config.n_experts == 3
+    loaded.reset()
+    again = [loaded.select_action(dict(obs)) for _ in range(5)]
+    assert all(torch.equal(a, b) for a, b in zip(actions, again, strict=True))
+    # a mixture checkpoint does not load into a single-decoder CNMP (nor the reverse): a clear error
+    cfg = json.loads((ckpt / "config.json").read_text())
+    cfg["n_experts"] = 1
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="do not fit"):
+        CNMPPolicy.from_pretrained(ckpt)

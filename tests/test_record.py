@@ -175,3 +175,43 @@ def test_record_room_images(tmp_path):
     env.close()
     card = (root / "README.md").read_text()
     assert "PNG" in card and "CPU cores" in card and "first |" in card
+
+
+def test_record_shared_family(tmp_path):
+    """``--sim cnmp_obstacle2d_shared``: both modes start and end at the same heights (family ``shared``)."""
+    from lerobot_cnmp.envs.obstacle2d import SHARED_Y0_RANGE
+
+    root = record_mod.record_dataset("cnmp_obstacle2d_shared", tmp_path / "ds", n_episodes=4, seed=0, progress=False)
+    df = _parquet(root)
+    card = (root / "README.md").read_text()
+    assert "--sim cnmp_obstacle2d_shared" in card and "family `shared`" in card
+    for e, ep in df.groupby("episode_index"):
+        a = np.stack(ep["action"].to_numpy())
+        assert SHARED_Y0_RANGE[0] <= a[0, 1] <= SHARED_Y0_RANGE[1]
+        assert a[-1, 1] == pytest.approx(a[0, 1], abs=1e-6)
+        # even episodes over the obstacle, odd ones under
+        assert np.sign(a[100, 1]) == (1 if e % 2 == 0 else -1)
+
+
+def test_action_noise_perturbs_execution_and_records_the_experts_action(recorded, tmp_path):
+    """DART: the env executes action + noise, the dataset keeps the expert's action (the obstacle expert
+    replays its path, so its actions do not depend on the state reached: equal to the noise-free run's)."""
+    noisy = record_mod.record_dataset(SIM, tmp_path / "noisy", n_episodes=4, seed=0, repo_id=REPO, progress=False,
+                                      action_noise="0.05")
+    clean_df, noisy_df = _parquet(recorded), _parquet(noisy)
+    clean_a, noisy_a = (np.stack(d["action"].to_numpy()) for d in (clean_df, noisy_df))
+    clean_s, noisy_s = (np.stack(d["observation.state"].to_numpy()) for d in (clean_df, noisy_df))
+    assert np.allclose(clean_a, noisy_a)
+    first = clean_df["frame_index"].to_numpy() == 0
+    assert np.allclose(clean_s[first], noisy_s[first])
+    assert np.abs(clean_s[~first] - noisy_s[~first]).max() > 1e-3  # the executions differ
+    card = (noisy / "README.md").read_text()
+    assert "DART" in card and "--action_noise 0.05,0.05" in card
+
+
+@pytest.mark.parametrize("noise, message", [("0.1,0.2,0.3", "has 3 values; the action has 2 dims"),
+                                            ("-1", "finite and >= 0"), ("a", "numbers separated by commas")])
+def test_bad_action_noise_is_a_clear_error(tmp_path, noise, message):
+    with pytest.raises(ValueError, match=message):
+        record_mod.record_dataset(SIM, tmp_path / "x", n_episodes=1, action_noise=noise, progress=False)
+    assert not (tmp_path / "x").exists()

@@ -17,6 +17,8 @@ from lerobot_cnmp.envs.configs import (
     CNMPPickPlaceEnv,
     CNMPRoomEnv,
     CNMPWeightsEnv,
+    CNMPMetaWorldEnv,
+    METAWORLD_GYM_ID,
 )
 from lerobot_cnmp.envs.obstacle2d import DEFAULT_MAX_EPISODE_STEPS, ENV_STATE_DIM, MAX_CONDITIONS
 from lerobot_cnmp.envs import so101  # registers cnmp_so101 and cnmp/SO101PickPlace-v0
@@ -26,6 +28,7 @@ for _gym_id, _entry_point, _max_steps in (
     (PICKPLACE_GYM_ID, "lerobot_cnmp.envs.pickplace:PickPlaceEnv", pickplace.DEFAULT_MAX_EPISODE_STEPS),
     (WEIGHTS_GYM_ID, "lerobot_cnmp.envs.weights:WeightsEnv", weights.DEFAULT_MAX_EPISODE_STEPS),
     (ROOM_GYM_ID, "lerobot_cnmp.envs.room:RoomEnv", room.DEFAULT_MAX_EPISODE_STEPS),
+    (METAWORLD_GYM_ID, "lerobot_cnmp.envs.metaworld:MetaWorldEnv", 500),
 ):
     if _gym_id not in gym.registry:
         gym.register(id=_gym_id, entry_point=_entry_point, max_episode_steps=_max_steps)
@@ -113,6 +116,24 @@ def _obstacle2d_spec() -> SimSpec:
             "each step's phase (tau_k = k/199); the recorded positions are those the simulated "
             "servo reached, not the formula."
         ),
+    )
+
+
+def _obstacle2d_shared_spec() -> SimSpec:
+    """The obstacle sim's ``shared`` family (both modes share the start and the goal): same expert, features
+    and balanced modes as ``cnmp_obstacle2d``; the env config gets ``family="shared"``."""
+    import dataclasses
+
+    base = _obstacle2d_spec()
+    return dataclasses.replace(
+        base,
+        config_kwargs=lambda conditions: {"conditions": conditions, "family": "shared"},
+        description=base.description.replace(
+            "with y0 in s[0.1, 0.3], h in s[0.45, 0.65], p in [0.9, 1.6] for mode s; the start is (0, y0) and "
+            "the goal (1, y0).",
+            "with y0 in [-0.1, 0.1] for both modes (family `shared`: the two modes share the start (0, y0) and "
+            "the goal (1, y0), the paper's setting), h in s[0.45, 0.65], p in [0.9, 1.6] for mode s.")
+        + " Record and evaluate with `--env.family=shared`.",
     )
 
 
@@ -269,12 +290,41 @@ def _room_spec() -> SimSpec:
     )
 
 
+def _metaworld_spec() -> SimSpec:
+    from lerobot_cnmp.experts.metaworld import MetaWorldExpert
+
+    return SimSpec(
+        env_config_cls=CNMPMetaWorldEnv,
+        expert_cls=MetaWorldExpert,
+        demo_length=150,
+        default_episodes=20,
+        default_conditions="reach-v3",
+        feature_names={"action": ["dx", "dy", "dz", "gripper"], "agent_pos": ["hand_x", "hand_y", "hand_z", "gripper"],
+                       "environment_state": ["obj_x", "obj_y", "obj_z", "goal_x", "goal_y", "goal_z"]},
+        episode_label=lambda env: env.task_name,
+        config_kwargs=lambda conditions: {"task": conditions},
+        features_note=(
+            "`observation.state` is MetaWorld's hand position (m) and gripper opening; `action` its (dx, dy, dz, "
+            "gripper) in [-1, 1]; `observation.task_params` holds gamma = the first frame's main-object and goal "
+            "positions (m), constant within an episode."
+        ),
+        description=(
+            "A MetaWorld v3 task (metaworld 3.0.0: its Sawyer arm, physics, per-reset random object and goal "
+            "placement and `info[\"success\"]`), wrapped by lerobot_cnmp.envs.metaworld without copying any of "
+            "it, and demonstrated by MetaWorld's own scripted expert (metaworld.policies). The recorder's "
+            "`--conditions` names the task (default reach-v3); every demo succeeds at its last frame."
+        ),
+    )
+
+
 SIMS: dict[str, SimSpec] = {
     "cnmp_obstacle2d": _obstacle2d_spec(),
+    "cnmp_obstacle2d_shared": _obstacle2d_shared_spec(),
     "cnmp_pickplace": _pickplace_spec(),
     "cnmp_weights": _weights_spec(),
     "cnmp_room": _room_spec(),
     "cnmp_so101": so101.sim_spec(),
+    "cnmp_metaworld": _metaworld_spec(),
 }
 
 __all__ = ["CNMPObstacle2DEnv", "CNMPPickPlaceEnv", "CNMPRoomEnv", "CNMPWeightsEnv", "SIMS", "SimSpec",

@@ -13,11 +13,15 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from lerobot_cnmp.configuration_cnmp import TASK_PARAMS
 
 from lerobot_cnmp.envs.obstacle2d import (
+    ACTUATOR_CHOICES,
     CONDITION_CHOICES,
     CONTROL_FPS,
     DEFAULT_MAX_EPISODE_STEPS,
     ENV_STATE_DIM,
+    FAMILY_CHOICES,
     PERTURBATION_CHOICES,
+    RATE_LIMIT,
+    _check_family,
 )
 from lerobot_cnmp.envs.room import CONDITION_CHOICES as ROOM_CONDITION_CHOICES
 from lerobot_cnmp.envs.room import CONTROL_FPS as ROOM_CONTROL_FPS
@@ -88,9 +92,17 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
         episode_length: steps before truncation (the nominal demonstrated motion takes 200).
         conditions: how each episode's conditions are chosen: ``mixed`` (default; one of the next four per
             episode), ``paper_via``, ``paper_early``, ``paper_end`` (the paper's Fig. 4 conditions) or
-            ``random`` (random family member and condition set).
+            ``random`` (random family member and condition set), ``start_goal`` (start and goal) or
+            ``start_goal_early`` (those and an early point, which names the mode). With family ``shared``
+            only the last three exist.
         perturbation: ``none``, ``push`` (0.12 displacement away from the obstacle at a random step in
-            [50, 120]) or ``hold`` (held still for 30 steps from a random step in [50, 120]).
+            [50, 120]), ``push_toward`` (toward the obstacle, stopping 0.02 short of it), ``push_random`` (a
+            random direction, same stop) or ``hold`` (held still for 30 steps from a random step in [50, 120]).
+        family: ``mirrored`` (the modes start and end at mirrored heights) or ``shared`` (both modes share the
+            start and the goal, the paper's setting).
+        actuator: ``servo`` (the stiff position servo of the demos) or ``rate_limited`` (its set point moves at
+            most ``rate_limit`` m/s toward the command: the body lags behind the demos' schedule).
+        rate_limit: the ``rate_limited`` actuator's top speed, m/s (default 0.08; the demos move at up to ~0.5).
         render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
@@ -99,6 +111,9 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
     episode_length: int = DEFAULT_MAX_EPISODE_STEPS
     conditions: str = "mixed"
     perturbation: str = "none"
+    family: str = "mirrored"
+    actuator: str = "servo"
+    rate_limit: float = RATE_LIMIT
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
@@ -118,6 +133,9 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
         self._check_choice("task", ("Obstacle2D-v0",))
         self._check_choice("conditions", CONDITION_CHOICES)
         self._check_choice("perturbation", PERTURBATION_CHOICES)
+        self._check_choice("family", FAMILY_CHOICES)
+        self._check_choice("actuator", ACTUATOR_CHOICES)
+        _check_family(self.family, self.conditions)
         self._check_common()
 
     @property
@@ -125,6 +143,9 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
         return {
             "conditions": self.conditions,
             "perturbation": self.perturbation,
+            "family": self.family,
+            "actuator": self.actuator,
+            "rate_limit": self.rate_limit,
             **self._common_gym_kwargs(),
         }
 
@@ -276,3 +297,59 @@ class CNMPRoomEnv(CNMPSimConfig):
     @property
     def gym_kwargs(self) -> dict:
         return {"condition": self.condition, "image_size": self.image_size, **self._common_gym_kwargs()}
+
+
+METAWORLD_GYM_ID = "cnmp/MetaWorld-v0"
+
+
+@EnvConfig.register_subclass("cnmp_metaworld")
+@dataclass
+class CNMPMetaWorldEnv(CNMPSimConfig):
+    """A MetaWorld v3 task through our thin wrapper (:mod:`lerobot_cnmp.envs.metaworld`): MetaWorld's physics,
+    randomization and success flag; the hand state as ``agent_pos`` and γ (first frame's object and goal
+    positions) as ``environment_state``, which reaches the policy as ``observation.task_params``.
+
+    Fields:
+        task: any MetaWorld v3 task name (``reach-v3``, ``push-v3``, ``pick-place-v3``, ...).
+        fps: MetaWorld's control rate (80 Hz).
+        episode_length: steps before truncation (at most MetaWorld's 500).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig` (default no rendering:
+            MetaWorld's renderer is slow on CPU).
+    """
+
+    task: str | None = "reach-v3"
+    fps: int = 80
+    episode_length: int = 150
+    render_mode: str | None = None
+    render_size: int = 128
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(4,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(4,)),
+            "environment_state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE, "environment_state": TASK_PARAMS}
+    )
+
+    def __post_init__(self):
+        from lerobot_cnmp.envs.metaworld import check_task
+
+        check_task(self.task)
+        if not 1 <= self.episode_length <= 500:
+            raise ValueError(f"episode_length must be in [1, 500] (MetaWorld's path length), got {self.episode_length}")
+        self._check_common()
+
+    @property
+    def gym_id(self) -> str:
+        return METAWORLD_GYM_ID
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"task": self.task, **self._common_gym_kwargs()}
+
+    def get_env_processors(self):
+        """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``."""
+        rename = RenameObservationsProcessorStep(rename_map={OBS_ENV_STATE: TASK_PARAMS})
+        return PolicyProcessorPipeline(steps=[rename]), PolicyProcessorPipeline(steps=[])

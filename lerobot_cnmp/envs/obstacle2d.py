@@ -11,8 +11,18 @@ a hidden reference trajectory of the family (its start is the reset state, its e
 conditions taken from it; the conditions are the only task information in the observation
 (``environment_state``, encoded with :func:`lerobot_cnmp.conditions.encode_conditions`).
 
+Task families (``family``): ``mirrored`` (the above; the modes start and end at mirrored heights, so a start or
+goal alone names the mode) or ``shared`` (the paper's setting: both modes start at (0, y0) and end at (1, y0)
+with the same ``y0 in [-0.1, 0.1]``, ``h in s*[0.45, 0.65]``; a method that averages the modes goes through
+the obstacle).
+
 Success (``info["is_success"]``, every step): goal reached (within 0.05), every condition passed (the
 closest visited position is within 0.05 on the constrained dims) and no contact with the obstacle so far.
+
+Actuators (``actuator``): ``servo`` (the stiff, critically damped position servo the demos were recorded
+with) or ``rate_limited`` (the same servo behind a set point that moves toward the commanded position at
+most ``rate_limit`` m/s (default ``RATE_LIMIT``), slower than the demonstrated motion: a body commanded on the demos' schedule
+falls behind and cuts corners).
 """
 
 from __future__ import annotations
@@ -45,16 +55,22 @@ ACTION_LOW = np.array([-0.3, -0.8], dtype=np.float32)
 ACTION_HIGH = np.array([1.3, 0.8], dtype=np.float32)
 DEFAULT_MAX_EPISODE_STEPS = 300
 PUSH_DISTANCE = 0.12
+PUSH_MIN_CLEARANCE = 0.02  # a push toward the obstacle stops this far from it
 HOLD_STEPS = 30
 PERTURB_STEP_RANGE = (50, 120)  # inclusive
+RATE_LIMIT = 0.08  # m/s, the rate_limited actuator's top speed (the demos move at up to ~0.5 m/s)
 
 # Task family bounds (for mode +1; mode -1 mirrors y0 and h).
 Y0_RANGE = (0.1, 0.3)
+SHARED_Y0_RANGE = (-0.1, 0.1)  # family 'shared': the start height of both modes
 H_RANGE = (0.45, 0.65)
 P_RANGE = (0.9, 1.6)
 
-CONDITION_CHOICES = ("mixed", "paper_via", "paper_early", "paper_end", "random")
-PERTURBATION_CHOICES = ("none", "push", "hold")
+CONDITION_CHOICES = ("mixed", "paper_via", "paper_early", "paper_end", "random", "start_goal", "start_goal_early")
+PAPER_CONDITION_CHOICES = ("mixed", "paper_via", "paper_early", "paper_end")  # the mirrored family only
+PERTURBATION_CHOICES = ("none", "push", "push_toward", "push_random", "hold")
+FAMILY_CHOICES = ("mirrored", "shared")
+ACTUATOR_CHOICES = ("servo", "rate_limited")
 RANDOM_VARIANTS = ("via", "early", "end", "via+end", "via_y")  # condition sets of ``random``
 MODE_NAMES = {1: "over", -1: "under"}
 
@@ -129,12 +145,18 @@ class Obstacle2DTask:
         return MODE_NAMES[self.mode]
 
     @classmethod
-    def sample(cls, rng: np.random.Generator, mode: int | None = None) -> Obstacle2DTask:
+    def sample(cls, rng: np.random.Generator, mode: int | None = None, family: str = "mirrored") -> Obstacle2DTask:
+        if family not in FAMILY_CHOICES:
+            raise ValueError(f"unknown family {family!r}; choose one of {list(FAMILY_CHOICES)}")
         if mode is None:
             mode = int(rng.choice([1, -1]))
         y0 = rng.uniform(*Y0_RANGE)
         h = rng.uniform(*H_RANGE)
         p = rng.uniform(*P_RANGE)
+        if family == "shared":  # the same start (and goal) height range for both modes
+            return cls(mode=mode, y0=float(SHARED_Y0_RANGE[0] + (SHARED_Y0_RANGE[1] - SHARED_Y0_RANGE[0])
+                                           * (y0 - Y0_RANGE[0]) / (Y0_RANGE[1] - Y0_RANGE[0])),
+                       h=float(mode * h), p=float(p))
         return cls(mode=mode, y0=float(mode * y0), h=float(mode * h), p=float(p))
 
 
@@ -146,6 +168,14 @@ def _check_mode(mode) -> int | None:
     if mode not in (1, -1):
         raise ValueError(f"mode must be +1 ('over'), -1 ('under') or None, got {mode!r}")
     return int(mode)
+
+
+def _check_family(family: str, conditions: str) -> None:
+    if family not in FAMILY_CHOICES:
+        raise ValueError(f"unknown family {family!r}; choose one of {list(FAMILY_CHOICES)}")
+    if family == "shared" and conditions in PAPER_CONDITION_CHOICES:
+        raise ValueError(f"conditions {conditions!r} are the paper's sets of the 'mirrored' family; with family "
+                         f"'shared' choose one of {[c for c in CONDITION_CHOICES if c not in PAPER_CONDITION_CHOICES]}")
 
 
 PAPER_CONDITIONS: dict[str, list[Condition]] = {
@@ -162,17 +192,27 @@ def _point(task: Obstacle2DTask, t: float, dims=None) -> Condition:
 
 
 def sample_episode(
-    rng: np.random.Generator, conditions: str, mode: int | None = None
+    rng: np.random.Generator, conditions: str, mode: int | None = None, family: str = "mirrored"
 ) -> tuple[Obstacle2DTask, list[Condition], str]:
     """Draw ``(task, conditions, kind)`` for one episode.
 
     ``kind`` names the concrete condition set: ``paper_via``, ``paper_early``, ``paper_end`` or
     ``random/<variant>`` with variant in :data:`RANDOM_VARIANTS`. ``mode`` (+1 / -1) forces the avoidance
-    mode (for ``mixed``, only the compatible condition sets are drawn).
+    mode (for ``mixed``, only the compatible condition sets are drawn). ``start_goal``: the start (phase 0)
+    and the goal (phase 1); ``start_goal_early``: those and the reference point at a phase drawn in
+    [0.15, 0.3], which names the mode in either family. ``family``: see :class:`Obstacle2DEnv`; the
+    paper's condition sets (and ``mixed``) exist for the ``mirrored`` family only.
     """
     if conditions not in CONDITION_CHOICES:
         raise ValueError(f"unknown conditions {conditions!r}; choose one of {list(CONDITION_CHOICES)}")
+    _check_family(family, conditions)
     mode = _check_mode(mode)
+    if conditions in ("start_goal", "start_goal_early"):
+        task = Obstacle2DTask.sample(rng, mode, family)
+        conds = [_point(task, 0.0), _point(task, 1.0)]
+        if conditions == "start_goal_early":
+            conds.append(_point(task, rng.uniform(0.15, 0.3)))
+        return task, conds, conditions
     kind = conditions
     if kind == "mixed":
         kinds = ["paper_via", "paper_early", "paper_end", "random"]
@@ -204,7 +244,7 @@ def sample_episode(
                 return task, PAPER_CONDITIONS[kind], kind
         raise RuntimeError("could not sample a task through the paper_early condition")  # pragma: no cover
     # random
-    task = Obstacle2DTask.sample(rng, mode)
+    task = Obstacle2DTask.sample(rng, mode, family)
     variant = RANDOM_VARIANTS[int(rng.integers(len(RANDOM_VARIANTS)))]
     if variant == "via":
         conds = [_point(task, rng.uniform(0.35, 0.65))]
@@ -225,8 +265,14 @@ class Obstacle2DEnv(MujocoSimEnv):
 
     Args:
         conditions: how each episode's conditions are chosen, one of ``CONDITION_CHOICES``.
-        perturbation: ``"none"``, ``"push"`` (instant 0.12 displacement away from the obstacle at a random
-            step in [50, 120]) or ``"hold"`` (agent held still for 30 steps from a random step in [50, 120]).
+        perturbation: ``"none"``, ``"push"`` (instant 0.12 displacement away from the obstacle, normal to
+            the motion, at a random step in [50, 120]), ``"push_toward"`` (the same, toward the obstacle's
+            centre), ``"push_random"`` (the same, in a uniformly random direction) or ``"hold"`` (agent held
+            still for 30 steps from a random step in [50, 120]).
+        family: ``"mirrored"`` or ``"shared"`` (both modes share start and goal), see the module docstring.
+        actuator: ``"servo"`` or ``"rate_limited"`` (set point slewed at ``rate_limit`` m/s), see the module
+            docstring.
+        rate_limit: the ``rate_limited`` actuator's top speed, m/s (default ``RATE_LIMIT``).
         render_mode: ``"rgb_array"`` or None.
         render_size: side of the square rendered image, pixels.
         terminate_on_success: end the episode (``terminated=True``) as soon as it is successful.
@@ -248,6 +294,9 @@ class Obstacle2DEnv(MujocoSimEnv):
         render_size: int = 256,
         terminate_on_success: bool = True,
         max_episode_steps: int | None = None,
+        family: str = "mirrored",
+        actuator: str = "servo",
+        rate_limit: float = RATE_LIMIT,
     ):
         if conditions not in CONDITION_CHOICES:
             raise ValueError(f"unknown conditions {conditions!r}; choose one of {list(CONDITION_CHOICES)}")
@@ -255,8 +304,16 @@ class Obstacle2DEnv(MujocoSimEnv):
             raise ValueError(
                 f"unknown perturbation {perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
             )
+        _check_family(family, conditions)
+        if actuator not in ACTUATOR_CHOICES:
+            raise ValueError(f"unknown actuator {actuator!r}; choose one of {list(ACTUATOR_CHOICES)}")
         self.conditions_mode = conditions
         self.perturbation = perturbation
+        self.family = family
+        self.actuator = actuator
+        if not rate_limit > 0:
+            raise ValueError(f"rate_limit must be > 0 (m/s), got {rate_limit}")
+        self.rate_limit = float(rate_limit)
         self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
 
         self.model = mujoco.MjModel.from_xml_string(MJCF)
@@ -311,7 +368,7 @@ class Obstacle2DEnv(MujocoSimEnv):
         else:
             if "conditions" in options:
                 raise ValueError("options['conditions'] needs options['task'] too")
-            task, conds, kind = sample_episode(self.np_random, self.conditions_mode, options.get("mode"))
+            task, conds, kind = sample_episode(self.np_random, self.conditions_mode, options.get("mode"), self.family)
         self.task, self.conditions, self.condition_kind = task, conds, kind
         self._env_state = encode_conditions(conds, sm_dim=SM_DIM, max_conditions=MAX_CONDITIONS)
 
@@ -321,6 +378,8 @@ class Obstacle2DEnv(MujocoSimEnv):
             if self.perturbation != "none"
             else -1
         )
+        # push_random: its direction, drawn after the step (the other perturbations draw the same sequence)
+        self._push_angle = float(self.np_random.uniform(0.0, 2 * np.pi)) if self.perturbation == "push_random" else 0.0
         self._perturbed = False
         self._hold_pos: np.ndarray | None = None
         self._hold_left = 0
@@ -329,6 +388,7 @@ class Obstacle2DEnv(MujocoSimEnv):
         self.data.qpos[:2] = task.start
         self.data.qvel[:] = 0.0
         self.data.ctrl[:] = task.start
+        self._setpoint = np.array(task.start, dtype=np.float64)  # the rate_limited actuator's set point
         self._set_markers()
         mujoco.mj_forward(self.model, self.data)  # after the markers: rendering reads the computed site poses
         self._step = 0
@@ -346,9 +406,16 @@ class Obstacle2DEnv(MujocoSimEnv):
             self.data.qpos[:2] = self._hold_pos
             self.data.qvel[:] = 0.0
             self.data.ctrl[:] = self._hold_pos
+            self._setpoint = self._hold_pos.copy()
             self.data.time += N_SUBSTEPS * self.model.opt.timestep
             mujoco.mj_forward(self.model, self.data)
         else:
+            if self.actuator == "rate_limited":
+                delta = action - self._setpoint
+                most = self.rate_limit * N_SUBSTEPS * self.model.opt.timestep
+                dist = float(np.linalg.norm(delta))
+                self._setpoint = self._setpoint + (delta if dist <= most else delta * (most / dist))
+                action = self._setpoint
             self.data.ctrl[:] = action
             for _ in range(N_SUBSTEPS):
                 mujoco.mj_step(self.model, self.data)
@@ -389,7 +456,20 @@ class Obstacle2DEnv(MujocoSimEnv):
     def _start_perturbation(self):
         self._perturbed = True
         pos = self.data.qpos[:2].copy()
-        if self.perturbation == "push":
+        if self.perturbation in ("push_toward", "push_random"):
+            if self.perturbation == "push_toward":
+                n = OBSTACLE_CENTER - pos
+                n = n / max(np.linalg.norm(n), 1e-9)
+            else:
+                n = np.array([np.cos(self._push_angle), np.sin(self._push_angle)])
+            # never into the obstacle: shortened to keep PUSH_MIN_CLEARANCE between the agent and it
+            lengths = np.linspace(PUSH_DISTANCE, 0.0, 121)
+            clear = np.linalg.norm(pos + lengths[:, None] * n - OBSTACLE_CENTER, axis=1) - OBSTACLE_RADIUS - AGENT_RADIUS
+            length = float(lengths[np.argmax(clear >= PUSH_MIN_CLEARANCE)]) if (clear >= PUSH_MIN_CLEARANCE).any() else 0.0
+            self.data.qpos[:2] = pos + length * n
+            self.data.qvel[:] = 0.0
+            mujoco.mj_forward(self.model, self.data)
+        elif self.perturbation == "push":
             away = pos - OBSTACLE_CENTER
             away = away / max(np.linalg.norm(away), 1e-9)
             vel = self.data.qvel[:2].copy()

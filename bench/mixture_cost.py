@@ -1,0 +1,101 @@
+"""Training cost of the mixture decoder (issue 17): time to the single-decoder CNMP's validation NLL on the
+2D obstacle data.
+
+    python bench/mixture_cost.py [--experts 4] [--mixture_nll cnep] [--steps 3000] [--every 250]
+
+Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
+``configs/cnmp_obstacle2d.json`` on ``datasets/cnmp_obstacle2d`` with the in-memory API, same steps, batch
+and seed. Every ``--every`` steps each is scored on validation tasks that are not in the dataset (fresh tasks
+of the sim, both modes; as ``time_to_error.py``): given the start and one via point, the NLL of the task's
+true 200-step path under the predicted density, per point, in the data's units: -log N(y | μ, σ) for K = 1,
+-log Σ_k π_k N(y | μ_k, σ_k) for the mixture (the density its experts and gate predict). Reported: the
+training time (scoring excluded) until each reaches the single decoder's final validation NLL, and their
+ratio (bar: <= 2). Last line: one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import CONFIG, DATASET, api_model, config  # noqa: E402
+from time_to_error import PHASES, first_below, validation_set  # noqa: E402
+
+
+def validation_nll(model, val) -> float:
+    """Mean over tasks and path points of -log Σ_k π_k Π_d N(y_d | μ_kd, σ_kd) (K = 1: Eq. 1)."""
+    out = []
+    for conds, path in val:
+        means, stds, probs = model.predict_mixture(PHASES, conds)  # [K, M, D], [K, M, D], [K]
+        log_n = (-0.5 * ((path[None] - means) / stds) ** 2 - np.log(stds) - 0.5 * np.log(2 * np.pi)).sum(-1)
+        log_mix = np.log(np.maximum(probs, 1e-30))[:, None] + log_n  # [K, M]
+        top = log_mix.max(0)
+        out.append(-(top + np.log(np.exp(log_mix - top).sum(0))).mean())
+    return float(np.mean(out))
+
+
+def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> list[tuple[int, float, float]]:
+    import torch
+
+    from lerobot_cnmp.data import load_demos
+
+    torch.manual_seed(seed)
+    model = api_model(cfg)
+    model.overrides.update(overrides)
+    points, clock = [], {"train": 0.0, "since": time.perf_counter()}
+
+    def callback(done, m):
+        clock["train"] += time.perf_counter() - clock["since"]
+        points.append((done, clock["train"], validation_nll(m, val)))
+        clock["since"] = time.perf_counter()
+
+    model.fit(load_demos(DATASET)["demos"], steps=steps, batch_size=cfg["batch_size"], seed=seed, progress=False,
+              callback=callback, callback_every=every)
+    return points
+
+
+def main() -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--experts", type=int, default=4)
+    p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--every", type=int, default=250)
+    p.add_argument("--validation", type=int, default=40, help="validation tasks")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+
+    cfg = config(CONFIG)
+    val = validation_set(args.validation, 500000)
+    curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed),
+              "mixture": run(cfg, args.steps, args.every, val, args.seed, n_experts=args.experts,
+                             mixture_nll=args.mixture_nll)}
+    target = curves["cnmp"][-1][2]
+    print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
+    print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' NLL':>14}" for k in curves))
+    for row in zip(*curves.values(), strict=True):
+        print(f"{row[0][0]:>6}" + "".join(f"{s:>12.1f}{e:>14.3f}" for _, s, e in row))
+    res: dict = {"experts": args.experts, "mixture_nll": args.mixture_nll, "steps": args.steps,
+                 "target_validation_nll": round(target, 3)}
+    for k, pts in curves.items():
+        steps, seconds = first_below(pts, target)
+        res[f"time_to_target_s_{k}"] = None if seconds is None else round(seconds, 1)
+        res[f"steps_to_target_{k}"] = steps
+        res[f"final_validation_nll_{k}"] = round(pts[-1][2], 3)
+        res[f"total_train_s_{k}"] = round(pts[-1][1], 1)
+    if res["time_to_target_s_mixture"] is not None:
+        res["time_ratio_mixture_vs_cnmp"] = round(res["time_to_target_s_mixture"] / res["time_to_target_s_cnmp"], 2)
+    print(f"the single decoder's final validation NLL {target:.3f}: CNMP after {res['time_to_target_s_cnmp']} s, "
+          f"the mixture (K={args.experts}) after {res['time_to_target_s_mixture']} s "
+          f"(ratio {res.get('time_ratio_mixture_vs_cnmp', 'not reached')})")
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()

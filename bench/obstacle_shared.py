@@ -1,0 +1,114 @@
+"""Overlapping modes, executed: CNMP vs ProMP on the obstacle sim's ``shared`` family (paper Sec. IV-A setting).
+
+    python bench/obstacle_shared.py [--checkpoint CKPT | --train] [--episodes 50] [--seed 900000]
+
+In ``--env.family=shared`` both avoidance modes start at (0, y0) and end at (1, y0) with the same y0: a
+start and a goal do not name the mode, and the average of the two modes runs through the obstacle. Both
+methods are trained on the same demos (``datasets/cnmp_obstacle2d_shared``, 64 demos, modes balanced) and
+run in the sim on the same episodes (reset seeds ``--seed`` + i), for each condition choice:
+
+- ``start_goal_early``: start, goal and an early point (phase 0.15-0.3) of the episode's reference, which
+  names the mode;
+- ``random``: one of the sim's random condition sets (via / early / end / via+end / via-y; ``end`` alone does
+  not name the mode in this family);
+- ``start_goal``: start and goal only; no information about the mode at all.
+
+CNMP runs as ``lerobot-eval`` runs it (``select_action`` with the config's online feedback, PD and phase
+stop). ProMP (``movement_primitives``, 31 RBFs per dim) is conditioned on the episode's conditions and its
+mean is commanded open loop on the demos' schedule (step k -> phase k/199, then the goal). Reported per
+choice, over the executed runs: collision-free % (no contact with the obstacle during the 300 steps) and
+success % (the env's rule: goal, conditions, no contact), and the collision-free % of each method's
+predicted mean (the plan before execution). Last line: one JSON object (``checkpoint`` names the CNMP's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, predict_sm, provenance  # noqa: E402
+
+CONFIG = REPO / "configs" / "cnmp_obstacle2d_shared.json"
+DATASET = REPO / "datasets" / "cnmp_obstacle2d_shared"
+CHECKPOINT = REPO / "outputs" / "shared" / "train" / "checkpoints" / "last" / "pretrained_model"
+CHOICES = ("start_goal_early", "random", "start_goal")
+STEPS = 300
+DEMO_STEPS = 200
+
+
+def clear_of_obstacle(path: np.ndarray) -> bool:
+    from lerobot_cnmp.envs.obstacle2d import AGENT_RADIUS, OBSTACLE_CENTER, OBSTACLE_RADIUS
+
+    return bool((np.linalg.norm(path - OBSTACLE_CENTER, axis=1) - OBSTACLE_RADIUS - AGENT_RADIUS).min() > 0)
+
+
+def run_cnmp(policy, pre, post, env, seed: int) -> dict:
+    import torch
+
+    obs, _ = env.reset(seed=seed)
+    policy.reset()
+    plan, success = None, False
+    for _ in range(STEPS):
+        batch = policy_batch(pre, obs)
+        with torch.no_grad():
+            action = policy.select_action(batch)
+        if plan is None:
+            plan = predict_sm(policy, pre, post, batch, 0.0, np.linspace(0.0, 1.0, DEMO_STEPS))[0]
+        obs, _, _, _, info = env.step(post(action)[0].numpy())
+        success |= bool(info["is_success"])
+    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(plan)}
+
+
+def run_promp(promp, env, seed: int) -> dict:
+    env.reset(seed=seed)
+    mean, _ = promp.predict(np.linspace(0.0, 1.0, DEMO_STEPS), list(env.unwrapped.conditions))
+    success = False
+    for k in range(STEPS):
+        _, _, _, _, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+        success |= bool(info["is_success"])
+    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(mean)}
+
+
+def main() -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on datasets/cnmp_obstacle2d_shared")
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--seed", type=int, default=900000)
+    args = p.parse_args()
+    if args.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {args.episodes}")
+
+    from lerobot_cnmp.api import load_pretrained
+    from lerobot_cnmp.baselines import ProMPBaseline
+    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.envs.obstacle2d import Obstacle2DEnv
+
+    ckpt = checkpoint_from_args(args, "cnmp_obstacle2d_shared", config_path=CONFIG)
+    policy, pre, post = load_pretrained(ckpt)
+    policy.eval()
+    promp = ProMPBaseline().fit(load_demos(DATASET)["demos"])
+    res: dict = {"checkpoint": provenance(ckpt), "episodes": args.episodes, "seed": args.seed}
+    print(f"{'conditions':<18}{'method':<7}{'exec. collision-free %':>24}{'exec. success %':>17}{'plan collision-free %':>23}")
+    for choice in CHOICES:
+        env = Obstacle2DEnv(conditions=choice, family="shared", render_mode=None, terminate_on_success=False)
+        for name, run in (("cnmp", lambda s: run_cnmp(policy, pre, post, env, s)), ("promp", lambda s: run_promp(promp, env, s))):
+            runs = [run(args.seed + i) for i in range(args.episodes)]
+            free = 100.0 * np.mean([not r["contact"] for r in runs])
+            succ = 100.0 * np.mean([r["success"] for r in runs])
+            plan = 100.0 * np.mean([r["plan_clear"] for r in runs])
+            res[f"shared_{choice}_collision_free_{name}"] = round(free, 1)
+            res[f"shared_{choice}_success_{name}"] = round(succ, 1)
+            res[f"shared_{choice}_plan_collision_free_{name}"] = round(plan, 1)
+            print(f"{choice:<18}{name:<7}{free:>24.1f}{succ:>17.1f}{plan:>23.1f}")
+        env.close()
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
