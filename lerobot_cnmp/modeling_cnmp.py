@@ -718,7 +718,7 @@ class CNMPPolicy(PreTrainedPolicy):
         values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample),
                                                 c.m_max_targets, generator)
         values, phase = self.normalizer.sm(values.to(dev)), phase.to(dev)
-        first = 0 if c.condition_on_start else 1
+        first = 0 if c.execution.condition_on_start else 1
         n_ctx = 2 - first
         b = values.shape[0]
         mask = self.sensed_only_mask[None, None, :].expand(b, n_ctx, -1)
