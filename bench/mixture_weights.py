@@ -25,9 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, api_model, config  # noqa: E402
+from weights_report import start_and_lift  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
-AFTER_LIFT_STEP = 112  # as weights_report.py
 
 
 def unseen_masses() -> list[float]:
@@ -52,10 +52,8 @@ def main() -> dict:
 
     import torch
 
-    from lerobot_cnmp.conditions import Condition
     from lerobot_cnmp.data import load_demos
     from lerobot_cnmp.envs.weights import HEAVY_THRESHOLD, SHAPES, ZONE_XY, WeightsEnv
-    from lerobot_cnmp.experts.weights import WeightsExpert
 
     torch.manual_seed(args.seed)
     cfg = config(CONFIG)
@@ -75,15 +73,7 @@ def main() -> dict:
     rows = []
     for shape in range(len(SHAPES)):
         for mass in unseen_masses():
-            obs, _ = env.reset(seed=0, options={"shape": shape, "mass": mass})
-            expert = WeightsExpert(env)
-            expert.reset()
-            states = [obs["agent_pos"]]
-            for k in range(AFTER_LIFT_STEP + 1):
-                obs, *_ = env.step(expert.act(k))
-                states.append(obs["agent_pos"])
-            start = Condition(0.0, tuple(float(v) for v in states[0]))
-            lifted = Condition(AFTER_LIFT_STEP / 199, tuple(float(v) for v in states[AFTER_LIFT_STEP + 1]))
+            start, lifted = start_and_lift(env, shape, mass)
             means_before, _, before = model.predict_mixture([1.0], [start])
             zones_before = [int(np.argmin(np.linalg.norm(ZONE_XY - m[0, :2], axis=1))) for m in means_before]
             means, _, after = model.predict_mixture([1.0], [start, lifted])

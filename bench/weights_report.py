@@ -28,15 +28,30 @@ CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "
 AFTER_LIFT_STEP = 112
 
 
+def start_and_lift(env, shape: int, mass: float):
+    """The expert's run on (shape, mass) up to just after the lift: the conditions (start at t = 0, the state
+    sensed after the lift) that the weights reports give the model."""
+    from lerobot_cnmp.conditions import Condition
+    from lerobot_cnmp.experts.weights import WeightsExpert
+
+    obs, _ = env.reset(seed=0, options={"shape": shape, "mass": mass})
+    expert = WeightsExpert(env)
+    expert.reset()
+    states = [obs["agent_pos"]]
+    for k in range(AFTER_LIFT_STEP + 1):
+        obs, *_ = env.step(expert.act(k))
+        states.append(obs["agent_pos"])
+    start = Condition(0.0, tuple(float(v) for v in states[0]))
+    return start, Condition(AFTER_LIFT_STEP / 199, tuple(float(v) for v in states[AFTER_LIFT_STEP + 1]))
+
+
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_weights")
     args = p.parse_args()
 
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.conditions import Condition
     from lerobot_cnmp.envs.weights import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY, WeightsEnv
-    from lerobot_cnmp.experts.weights import WeightsExpert
 
     ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
     model = CNMPModel.load(ckpt)
@@ -45,15 +60,7 @@ def main() -> dict:
     for shape in range(len(SHAPES)):
         for masses in TEST_MASSES.values():
             for mass in masses:
-                obs, _ = env.reset(seed=0, options={"shape": shape, "mass": mass})
-                expert = WeightsExpert(env)
-                expert.reset()
-                states = [obs["agent_pos"]]
-                for k in range(AFTER_LIFT_STEP + 1):
-                    obs, *_ = env.step(expert.act(k))
-                    states.append(obs["agent_pos"])
-                start = Condition(0.0, tuple(float(v) for v in states[0]))
-                lifted = Condition(AFTER_LIFT_STEP / 199, tuple(float(v) for v in states[AFTER_LIFT_STEP + 1]))
+                start, lifted = start_and_lift(env, shape, mass)
                 _, before = model.predict([1.0], [start])
                 end, after = model.predict([1.0], [start, lifted])
                 zone = int(np.argmin(np.linalg.norm(ZONE_XY - end[0, :2], axis=1)))
