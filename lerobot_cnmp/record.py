@@ -113,10 +113,12 @@ def parse_action_noise(text: str | float | list | None, action_dim: int) -> np.n
 
 
 def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str,
-             action_noise: str | None = None) -> str:
+             action_noise: str | None = None, max_failed: int = 0) -> str:
     cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
     if action_noise is not None:
         cmd += f" --action_noise {action_noise}"
+    if max_failed:
+        cmd += f" --max_failed {max_failed}"
     if repo_id != f"lerobot-cnmp/{sim}":
         cmd += f" --repo_id {repo_id}"
     spec = SIMS[sim]
@@ -132,6 +134,13 @@ def _noise_note(action_noise: np.ndarray | None) -> str:
             f"action plus Gaussian noise of std {np.round(action_noise, 4).tolist()} per action dim (clipped to the "
             f"action space), while `action` holds the expert's own, noise-free action at the state reached. The "
             f"demos thus show how the expert recovers from deviations.\n")
+
+
+def _dropped_note(dropped: list[int] | None) -> str:
+    if not dropped:
+        return ""
+    return (f"\n{len(dropped)} demo(s) failed and were dropped (the next seed was recorded instead): reset seeds "
+            f"{dropped}.\n")
 
 
 def _write_card(
@@ -150,6 +159,8 @@ def _write_card(
     command: str,
     elapsed_s: float,
     action_noise: np.ndarray | None = None,
+    seeds: list[int] | None = None,
+    dropped: list[int] | None = None,
 ) -> None:
     counts = collections.Counter(labels)
     feat_rows = "\n".join(
@@ -157,7 +168,8 @@ def _write_card(
         f"{', ...' if len(v['names']) > 6 else ''} |"
         for k, v in features.items()
     )
-    ep_rows = "\n".join(f"| {i} | {seed + i} | {lab} | {kind} |" for i, (lab, kind) in enumerate(zip(labels, kinds)))
+    seeds = seeds if seeds is not None else [seed + i for i in range(len(labels))]
+    ep_rows = "\n".join(f"| {i} | {sd} | {lab} | {kind} |" for i, (sd, lab, kind) in enumerate(zip(seeds, labels, kinds)))
     count_rows = "\n".join(f"| {lab} | {n} |" for lab, n in sorted(counts.items()))
     card = f"""---
 license: apache-2.0
@@ -207,14 +219,14 @@ Conditions used while recording: `{conditions}`.
 
 Each frame holds the observation *before* the action and the action commanded at that step (the
 position-servo target). {spec.features_note}
-{_noise_note(action_noise)}
+{_noise_note(action_noise)}{_dropped_note(dropped)}
 ## Regenerate
 
 ```bash
 {command}
 ```
 
-Seed {seed}: episode i is reset with seed {seed} + i, so the same command gives identical data.
+Seed {seed}: episode i is reset with the seed in its row above (seed {seed} + i unless demos were dropped), so the same command gives identical data.
 Generating it took {elapsed_s:.1f} s ({elapsed_s / n_episodes:.3f} s per episode) on a machine with
 {os.cpu_count()} CPU cores.
 
@@ -235,6 +247,7 @@ def record_dataset(
     conditions: str | None = None,
     progress: bool = True,
     action_noise: str | float | list | None = None,
+    max_failed: int = 0,
 ) -> Path:
     """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
 
@@ -252,6 +265,8 @@ def record_dataset(
             this std (one value, or one per action dim; clipped to the action space), the dataset records the
             expert's noise-free action. The expert must be a feedback controller (it acts on the state reached),
             so the demos show recoveries from deviations. None: none. Noise draws are seeded by ``seed``.
+        max_failed: drop up to this many demos that fail (e.g. under ``action_noise``) and go on with the next
+            seed; the card lists the dropped seeds. 0: the first failed demo stops the recording.
 
     Raises:
         ValueError: unknown sim, ``n_episodes < 1``.
@@ -264,6 +279,8 @@ def record_dataset(
     n_episodes = spec.default_episodes if n_episodes is None else int(n_episodes)
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    if max_failed < 0:
+        raise ValueError(f"max_failed must be >= 0, got {max_failed}")
     conditions = spec.default_conditions if conditions is None else conditions
     repo_id = repo_id or f"lerobot-cnmp/{sim}"
     root = Path(root).expanduser().absolute()
@@ -307,13 +324,16 @@ def record_dataset(
             # PNG encoding of image frames in background threads (finalize stops them)
             image_writer_threads=IMAGE_WRITER_THREADS if has_images else 0,
         )
-        labels, kinds = [], []
+        labels, kinds, seeds, dropped = [], [], [], []
         t_start = time.perf_counter()
-        for i in tqdm(range(n_episodes), desc=f"recording {sim}", unit="episode", disable=not progress):
-            obs, info = env.reset(seed=seed + i, options=spec.reset_options(i, conditions))
+        bar = tqdm(total=n_episodes, desc=f"recording {sim}", unit="episode", disable=not progress)
+        attempt = 0
+        while len(seeds) < n_episodes:
+            i = len(seeds)
+            obs, info = env.reset(seed=seed + attempt, options=spec.reset_options(attempt, conditions))
             expert.reset()
             task_str = _task_description(env) or sim
-            frames = []
+            frames, failure = [], None
             for k in range(spec.demo_length):
                 action = np.asarray(expert.act(k), dtype=np.float32)
                 frame = {cfg.features_map[key]: _frame_value(obs, key, obs_dtypes[key]) for key in obs_keys}
@@ -326,19 +346,28 @@ def record_dataset(
                                        env.action_space.low, env.action_space.high).astype(np.float32)
                 obs, _, terminated, truncated, info = env.step(executed)
                 if (terminated or truncated) and k < spec.demo_length - 1:
-                    raise DemoFailedError(
-                        f"episode {i} (seed {seed + i}) of {sim} ended after {k + 1} of {spec.demo_length} steps"
-                    )
-            if not info.get("is_success", False):
+                    failure = (f"episode {i} (seed {seed + attempt}) of {sim} ended after {k + 1} of "
+                               f"{spec.demo_length} steps")
+                    break
+            if failure is None and not info.get("is_success", False):
                 details = {key: val for key, val in info.items() if key != "is_success"}
-                raise DemoFailedError(
-                    f"the expert's demo failed in episode {i} (seed {seed + i}) of {sim}: {details}"
-                )
+                failure = f"the expert's demo failed in episode {i} (seed {seed + attempt}) of {sim}: {details}"
+            if failure is not None:
+                if len(dropped) >= max_failed:
+                    raise DemoFailedError(failure if not max_failed else
+                                          f"{failure}; {len(dropped)} failed demos were dropped already (max_failed)")
+                dropped.append(seed + attempt)
+                attempt += 1
+                continue
             for frame in frames:
                 ds.add_frame(frame)
             ds.save_episode()
             labels.append(spec.episode_label(base))
             kinds.append(str(getattr(base, "condition_kind", conditions)))
+            seeds.append(seed + attempt)
+            attempt += 1
+            bar.update(1)
+        bar.close()
         ds.finalize()
         elapsed_s = time.perf_counter() - t_start
         _remove_empty_dirs(tmp_parent / "dataset" / "images")  # LeRobot's PNG staging, emptied per episode
@@ -355,9 +384,11 @@ def record_dataset(
             labels=labels,
             kinds=kinds,
             command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
-                             None if noise is None else ",".join(f"{v:g}" for v in noise)),
+                             None if noise is None else ",".join(f"{v:g}" for v in noise), max_failed),
             elapsed_s=elapsed_s,
             action_noise=noise,
+            seeds=seeds,
+            dropped=dropped,
         )
         # swap in atomically: the old dataset (if any) is only removed once the new one is complete
         trash = None
@@ -414,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--action_noise", default=None,
                         help="DART execution noise: std of Gaussian noise added to the executed action, one value or "
                              "one per action dim ('0.3' or '0.3,0.3,0.3,0'); the recorded action stays the expert's")
+    parser.add_argument("--max_failed", type=int, default=0,
+                        help="drop up to this many failed demos (e.g. under --action_noise) and record the next seed "
+                             "instead; the card lists them (default 0: a failed demo stops the recording)")
     parser.add_argument("--push_to_hub", action="store_true",
                         help="then push the dataset to the Hub as --repo_id (LeRobotDataset.push_to_hub, with its card)")
     parser.add_argument("--private", action="store_true", help="with --push_to_hub: a private repository")
@@ -442,6 +476,7 @@ def main(argv: list[str] | None = None) -> int:
             overwrite=args.overwrite,
             conditions=args.conditions,
             action_noise=args.action_noise,
+            max_failed=args.max_failed,
         )
     except (FileExistsError, DemoFailedError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -215,3 +215,37 @@ def test_bad_action_noise_is_a_clear_error(tmp_path, noise, message):
     with pytest.raises(ValueError, match=message):
         record_mod.record_dataset(SIM, tmp_path / "x", n_episodes=1, action_noise=noise, progress=False)
     assert not (tmp_path / "x").exists()
+
+
+def test_max_failed_drops_failed_demos_and_records_the_next_seed(tmp_path, monkeypatch):
+    """Every other attempt fails (a straight line through the obstacle): with max_failed the failed seeds
+    are dropped and listed in the card; one failure more than allowed stops the recording, leaving nothing."""
+    real_act, real_reset = Obstacle2DExpert.act, Obstacle2DExpert.reset
+    resets = []
+
+    def reset(self):
+        resets.append(1)
+        return real_reset(self)
+
+    def act(self, step):
+        if len(resets) % 2 == 0:  # attempts 1, 3, ...
+            task = self.env.task
+            tau = min((step + 1) / (self.demo_length - 1), 1.0)
+            return (task.start + tau * (task.goal - task.start)).astype(np.float32)
+        return real_act(self, step)
+
+    monkeypatch.setattr(Obstacle2DExpert, "reset", reset)
+    monkeypatch.setattr(Obstacle2DExpert, "act", act)
+    root = record_mod.record_dataset(SIM, tmp_path / "ds", n_episodes=2, seed=10, conditions="paper_end",
+                                     max_failed=1, progress=False)
+    df = _parquet(root)
+    assert sorted(df["episode_index"].unique().tolist()) == [0, 1]
+    card = (root / "README.md").read_text()
+    assert "reset seeds [11]" in card and "| 1 | 12 |" in card and "--max_failed 1" in card
+    resets.clear()
+    with pytest.raises(record_mod.DemoFailedError, match="1 failed demos were dropped already"):
+        record_mod.record_dataset(SIM, tmp_path / "ds2", n_episodes=3, seed=10, conditions="paper_end",
+                                  max_failed=1, progress=False)
+    assert not (tmp_path / "ds2").exists()
+    with pytest.raises(ValueError, match="max_failed must be >= 0"):
+        record_mod.record_dataset(SIM, tmp_path / "ds3", n_episodes=1, max_failed=-1, progress=False)
