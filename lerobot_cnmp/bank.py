@@ -174,20 +174,22 @@ class EpisodeBank:
         """``k`` frames of each episode, uniform over its whole length: (values [B, k, D], phase [B, k]), raw
         units, on the CPU."""
         rows = self.rows(episode_index)
-        u = torch.rand((len(rows), k), generator=generator)
-        offs = (u * self.lengths[rows, None]).long().clamp(max=(self.lengths[rows, None] - 1))
-        idx = self.starts[rows, None] + offs
+        idx = self.starts[rows, None] + self._uniform_offsets(rows, k, generator)
         return self.values[idx], self.phase[idx]
+
+    def _uniform_offsets(self, rows: Tensor, k: int, generator: torch.Generator | None) -> Tensor:
+        """``k`` frame offsets per episode row, uniform over its length, [B, k]."""
+        u = torch.rand((len(rows), k), generator=generator)
+        return (u * self.lengths[rows, None]).long().clamp(max=(self.lengths[rows, None] - 1))
 
     def draw_feedback(self, episode_index: Tensor, m: int, generator: torch.Generator | None = None):
         """Per episode: its first frame, a uniform frame j, frame j + 1 (the last frame stays itself) and ``m``
         uniform frames, in that order: (values [B, 3 + m, D], phase [B, 3 + m]), raw units, on the CPU. The
         shape of execution's context (the start and the current sensed state) and its queries (now, next)."""
         rows = self.rows(episode_index)
-        length = self.lengths[rows]
-        u = torch.rand((len(rows), 1 + m), generator=generator)
-        offs = (u * length[:, None]).long().clamp(max=(length[:, None] - 1))
+        offs = self._uniform_offsets(rows, 1 + m, generator)
         j = offs[:, :1]
-        offs = torch.cat([torch.zeros_like(j), j, (j + 1).clamp(max=length[:, None] - 1), offs[:, 1:]], dim=1)
+        nxt = (j + 1).clamp(max=self.lengths[rows, None] - 1)
+        offs = torch.cat([torch.zeros_like(j), j, nxt, offs[:, 1:]], dim=1)
         idx = self.starts[rows, None] + offs
         return self.values[idx], self.phase[idx]

@@ -701,20 +701,24 @@ class CNMPPolicy(PreTrainedPolicy):
         loss, info = self.model.training_loss(context, targets)
         w = c.feedback_draw_weight
         if w > 0:
-            fb_loss, fb_info = self.model.training_loss(*self.feedback_draws(batch["episode_index"], generator))
+            fb_draws = self.feedback_draws(batch["episode_index"], generator, inputs=episodes.task_params)
+            fb_loss, fb_info = self.model.training_loss(*fb_draws)
             info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
             loss = (1.0 - w) * loss + w * fb_loss
             info["nll"] = loss.item()
         return loss, info
 
-    def feedback_draws(self, episode_index: Tensor, generator: torch.Generator | None = None) -> tuple[Context, Targets]:
+    def feedback_draws(self, episode_index: Tensor, generator: torch.Generator | None = None,
+                       inputs: Tensor | None = None) -> tuple[Context, Targets]:
         """Execution-shaped draws (``feedback_draw_weight``), ``draws_per_sample`` per named episode: the
         context is the sensed dims at the episode's first frame (with ``condition_on_start``) and at a uniform
-        frame j; the queries are j, j + 1 and ``m_max_targets`` uniform frames."""
+        frame j; the queries are j, j + 1 and ``m_max_targets`` uniform frames. ``inputs``: the episode-level
+        input already computed for these draws (``episodes_for``'s ``task_params``); None computes it."""
         c = self.config
         dev = self.normalizer.sm_std.device
         episode_index = episode_index.reshape(-1)
-        inputs = self._training_inputs(episode_index, c.draws_per_sample)
+        if inputs is None:
+            inputs = self._training_inputs(episode_index, c.draws_per_sample)
         values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample),
                                                 c.m_max_targets, generator)
         values, phase = self.normalizer.sm(values.to(dev)), phase.to(dev)
