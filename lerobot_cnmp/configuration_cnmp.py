@@ -105,6 +105,11 @@ class CNMPConfig(PreTrainedConfig):
             stop_gradient(σ^(2β)). 0 is the paper's NLL. With the plain NLL the mean's gradient is scaled by
             1/σ², so a dim the model finds hard early (large σ) stops being fitted and stays blurred; β = 0.5
             keeps fitting it. Training only: prediction and execution are unchanged.
+        commanded_loss_weight: The weight of each commanded (action) dim's NLL term, the sensed dims' being 1.
+            With an SM of many sensed dims and a few action dims (e.g. 14 state dims and a 4-dim delta action)
+            the loss is mostly the state's, while execution outputs only the action; > 1 shifts the fit to
+            the action. Training only; a single decoder (n_experts = 1); no effect in the tied layout (every dim
+            is both).
         draws_per_sample: Independent (observations, queries) draws made from each sampled episode per step:
             the loss sees batch_size x draws_per_sample draws. Every draw takes its frames from the whole
             episode (:mod:`lerobot_cnmp.bank`), so this only multiplies the training signal per loaded sample
@@ -170,6 +175,7 @@ class CNMPConfig(PreTrainedConfig):
     feedback_draw_weight: float = 0.0
     draws_per_sample: int = 1
     nll_beta: float = 0.0
+    commanded_loss_weight: float = 1.0
 
     # The SM space (lerobot_cnmp.sm_spec) and task parameters γ.
     sm: tuple[str, ...] | None = None
@@ -270,6 +276,11 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
         if not 0.0 <= self.feedback_draw_weight <= 1.0:
             raise ValueError(f"feedback_draw_weight must be in [0, 1], got {self.feedback_draw_weight}")
+        if not self.commanded_loss_weight > 0:
+            raise ValueError(f"commanded_loss_weight must be > 0, got {self.commanded_loss_weight}")
+        if self.commanded_loss_weight != 1.0 and self.n_experts > 1:
+            raise ValueError("commanded_loss_weight applies to the single decoder: use n_experts=1 or "
+                             f"commanded_loss_weight=1, got n_experts={self.n_experts}")
         if not 0.0 <= self.nll_beta <= 1.0:
             raise ValueError(f"nll_beta must be in [0, 1], got {self.nll_beta}")
         if self.demo_duration_s is not None and not self.demo_duration_s > 0:

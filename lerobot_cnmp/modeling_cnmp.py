@@ -238,6 +238,7 @@ class CNMP(nn.Module):
         self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
         self.mixture_nll = mixture_nll
         self.nll_beta = nll_beta
+        self.register_buffer("dim_weights", None, persistent=False)  # [D] NLL weights; None: all 1 (Eq. 1)
         self.register_buffer(
             "frequencies", torch.pi * torch.arange(1, phase_frequencies + 1, dtype=torch.float32), persistent=False
         )
@@ -345,12 +346,15 @@ class CNMP(nn.Module):
         return means, stds, self.gate_probs(r)
 
     @staticmethod
-    def nll(mean: Tensor, std: Tensor, targets: Targets, beta: float = 0.0) -> Tensor:
+    def nll(mean: Tensor, std: Tensor, targets: Targets, beta: float = 0.0, dim_weights: Tensor | None = None) -> Tensor:
         """Eq. 1: -log N(SM(t_q) | μ_q, σ_q), summed over SM dims, averaged over the valid queries. With
-        ``beta`` > 0, the β-NLL: each dim's term weighted by stop_gradient(σ^(2β))."""
+        ``beta`` > 0, the β-NLL: each dim's term weighted by stop_gradient(σ^(2β)); ``dim_weights`` [D]: each
+        dim's term weighted by it (``commanded_loss_weight``)."""
         per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
         if beta:
             per_dim = per_dim * std.detach() ** (2.0 * beta)
+        if dim_weights is not None:
+            per_dim = per_dim * dim_weights
         per_query = per_dim.sum(dim=-1)
         w = targets.valid.to(per_query.dtype)
         return (per_query * w).sum() / w.sum().clamp(min=1.0)
@@ -411,7 +415,7 @@ class CNMP(nn.Module):
             mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
         else:
             mean, std = self(context, targets.phase)
-            loss = self.nll(mean, std, targets, self.nll_beta)
+            loss = self.nll(mean, std, targets, self.nll_beta, self.dim_weights)
             info = {"nll": loss.item()}
         with torch.no_grad():
             w = targets.valid[..., None].to(mean.dtype)
@@ -594,6 +598,10 @@ class CNMPPolicy(PreTrainedPolicy):
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec
+        if config.commanded_loss_weight != 1.0 and not spec.tied:
+            weights = torch.ones(config.sm_dim)
+            weights[list(spec.commanded)] = config.commanded_loss_weight
+            self.model.dim_weights = weights
         # the mask of execution's feedback point (joint layout: the sensed dims); None in the tied layout,
         # where the fed-back point is a whole SM point
         sensed_only = torch.zeros(config.sm_dim)

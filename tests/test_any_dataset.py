@@ -465,3 +465,27 @@ def test_beta_nll_weights_each_dim_by_the_detached_variance():
     assert torch.allclose(grad_mean, (mean - targets.values).detach() / 10)
     (grad_plain,) = torch.autograd.grad(plain, mean)
     assert not torch.allclose(grad_plain, grad_mean)
+
+
+def test_commanded_loss_weight_scales_the_action_dims_terms(meta):
+    from lerobot_cnmp.modeling_cnmp import CNMP, Targets
+
+    with pytest.raises(ValueError, match="commanded_loss_weight must be > 0"):
+        CNMPConfig(commanded_loss_weight=0.0)
+    with pytest.raises(ValueError, match="commanded_loss_weight applies to the single decoder"):
+        CNMPConfig(commanded_loss_weight=2.0, n_experts=2)
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), commanded_loss_weight=4.0)
+    policy = make_policy(cfg, ds_meta=meta)
+    spec = policy.config.spec
+    w = policy.model.dim_weights
+    assert w is not None and w.shape == (spec.size,)
+    assert torch.all(w[spec.commanded] == 4.0) and torch.all(w[spec.sensed] == 1.0)
+    assert make_policy(CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32)),
+                       ds_meta=meta).model.dim_weights is None  # default: Eq. 1 as in the paper
+    g = torch.Generator().manual_seed(0)
+    mean, std = torch.randn(2, 5, spec.size, generator=g), torch.rand(2, 5, spec.size, generator=g) + 0.2
+    targets = Targets(torch.rand(2, 5, generator=g), torch.randn(2, 5, spec.size, generator=g),
+                      torch.ones(2, 5, dtype=torch.bool))
+    per_dim = 0.5 * ((targets.values - mean) / std) ** 2 + std.log() + 0.5 * np.log(2 * np.pi)
+    assert torch.allclose(CNMP.nll(mean, std, targets, dim_weights=w), (per_dim * w).sum(-1).mean())
+    assert not torch.allclose(CNMP.nll(mean, std, targets, dim_weights=w), CNMP.nll(mean, std, targets))
