@@ -159,3 +159,33 @@ def test_robot_client_round_trip_with_lerobot_cnmp_serve_on_loopback(trained):
     assert servicer.policy.name == "cnmp"
     # the served plan moved the arm through the reach (shoulder_lift -60 -> about -20 in the demos)
     assert end["shoulder_lift.pos"] - start["shoulder_lift.pos"] > 25.0, (start, end)
+
+
+def test_scripted_leader_moves_on_the_wall_clock_and_survives_stalls(monkeypatch):
+    """A stall of the recorder's loop mid-episode (a loaded machine) neither restarts the demo nor slows it;
+    the pause after a whole demo (the recorder saving the episode) starts the next one."""
+    from lerobot_cnmp.robot_so101 import SO101ScriptedTeleop, SO101ScriptedTeleopConfig
+    from lerobot_cnmp.robot_so101 import so101_mujoco
+
+    clock = [100.0]
+    monkeypatch.setattr(so101_mujoco.time, "perf_counter", lambda: clock[0])
+    cfg = SO101ScriptedTeleopConfig(episode_steps=45, reset_steps=15, fps=30.0)
+    teleop = SO101ScriptedTeleop(cfg)
+    teleop.connect()
+
+    def call(at: float) -> float:
+        clock[0] = 100.0 + at
+        return teleop.get_action()["shoulder_lift.pos"]
+
+    assert call(0.0) == pytest.approx(-60.0)  # demo 0 starts at home
+    call(0.5)
+    mid = call(0.9)  # a 0.4 s stall: still demo 0, at the pose of 0.9 s
+    assert teleop._demo == 0 and mid == pytest.approx(teleop.pose(0, 27)[1])
+    assert call(44 / 30) == pytest.approx(-20.0)  # the reach ends on time
+    for k in range(45, 61):  # the recorder's reset period at 30 Hz
+        call(k / 30)
+    assert teleop._demo == 0
+    call(2.5)  # the recorder paused to save: the next demo, from home
+    assert teleop._demo == 1 and teleop.get_action()["shoulder_lift.pos"] == pytest.approx(-60.0)
+    with pytest.raises(ValueError, match="fps must be > 0"):
+        SO101ScriptedTeleopConfig(fps=0)

@@ -45,16 +45,20 @@ class SO101MujocoConfig(RobotConfig):
 @dataclass
 class SO101ScriptedTeleopConfig(TeleoperatorConfig):
     """A scripted leader arm for ``lerobot-record``: each demo moves from ``start_deg`` to its goal (min-jerk in
-    joint space) over ``episode_steps`` calls, then returns to ``start_deg`` over ``reset_steps`` calls (the
-    recorder's reset period) and holds it.
+    joint space) over ``episode_steps`` / ``fps`` seconds, then returns to ``start_deg`` over ``reset_steps`` /
+    ``fps`` seconds (the recorder's reset period) and holds it. Like a person's leader arm it moves on the wall
+    clock: a call returns the pose of the time elapsed since the demo's start, so a recorder loop that runs
+    slower than ``fps`` (a loaded machine) records fewer frames of the same motion, not a slower motion.
     A pause of more than ``new_demo_gap_s`` between two calls (the recorder saving an episode) starts the next
-    demo, so demos stay aligned with the recorder's episodes whatever their exact frame count. Goals:
-    ``start_deg + reach_deg`` with shoulder_pan uniform in ``pan_range_deg``, demo k's drawn from ``(seed, k)``.
-    Record with ``--dataset.episode_time_s`` ≈ episode_steps / fps and ``--dataset.reset_time_s`` ≈
-    reset_steps / fps."""
+    demo once the current one has played its whole cycle (at least 90 % of (episode_steps + reset_steps) /
+    fps); an earlier pause (the loop stalled mid-episode) does not. Demos thus stay aligned with the
+    recorder's episodes. Goals: ``start_deg + reach_deg`` with shoulder_pan uniform in ``pan_range_deg``,
+    demo k's drawn from ``(seed, k)``. Record with ``--dataset.fps`` = fps, ``--dataset.episode_time_s`` ≈
+    episode_steps / fps and ``--dataset.reset_time_s`` ≈ reset_steps / fps."""
 
     episode_steps: int = 45
     reset_steps: int = 15
+    fps: float = 30.0
     new_demo_gap_s: float = 0.1
     seed: int = 0
     start_deg: tuple[float, ...] = HOME_DEG
@@ -64,6 +68,8 @@ class SO101ScriptedTeleopConfig(TeleoperatorConfig):
     def __post_init__(self):
         if self.episode_steps < 2 or self.reset_steps < 0:
             raise ValueError(f"need episode_steps >= 2 and reset_steps >= 0, got {self.episode_steps}, {self.reset_steps}")
+        if not self.fps > 0:
+            raise ValueError(f"fps must be > 0, got {self.fps}")
         if not self.new_demo_gap_s > 0:
             raise ValueError(f"new_demo_gap_s must be > 0, got {self.new_demo_gap_s}")
         self.start_deg = tuple(float(v) for v in self.start_deg)

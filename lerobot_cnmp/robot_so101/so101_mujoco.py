@@ -138,7 +138,7 @@ class SO101ScriptedTeleop(Teleoperator):
         super().__init__(config)
         self.config = config
         self._connected = False
-        self._calls = 0
+        self._demo, self._last_call, self._demo_start = -1, None, None
 
     @cached_property
     def action_features(self) -> dict[str, type]:
@@ -163,7 +163,7 @@ class SO101ScriptedTeleop(Teleoperator):
         pass
 
     def connect(self, calibrate: bool = True) -> None:
-        self._connected, self._calls, self._demo, self._last_call = True, 0, -1, None
+        self._connected, self._demo, self._last_call, self._demo_start = True, -1, None, None
 
     def goal(self, k: int) -> np.ndarray:
         """Demo k's goal pose (the robot's units)."""
@@ -191,12 +191,13 @@ class SO101ScriptedTeleop(Teleoperator):
     def get_action(self) -> dict[str, float]:
         if not self._connected:
             raise RuntimeError(f"{self} is not connected")
+        c = self.config
         now = time.perf_counter()
-        if self._last_call is None or now - self._last_call > self.config.new_demo_gap_s:
-            self._demo, self._calls = self._demo + 1, 0  # the recorder paused: the next episode
+        cycle_s = 0.9 * (c.episode_steps + c.reset_steps) / c.fps
+        if self._last_call is None or (now - self._last_call > c.new_demo_gap_s and now - self._demo_start >= cycle_s):
+            self._demo, self._demo_start = self._demo + 1, now  # the recorder paused after a whole demo: the next
         self._last_call = now
-        v = self.pose(self._demo, self._calls)
-        self._calls += 1
+        v = self.pose(self._demo, round((now - self._demo_start) * c.fps))
         return {f"{j}.pos": float(x) for j, x in zip(JOINTS, v, strict=True)}
 
     def send_feedback(self, feedback: dict) -> None:
