@@ -18,6 +18,9 @@ One cell of the table = (task, method, number of demos N). For each cell this sc
    Diffusion predict chunks, so most of their calls pop a queued action; their p95 / max are recorded too;
 4. writes ``outputs/compare/<task>/<method>_<N>demos.json``.
 
+``promp`` (``--methods promp``, obstacle2d only) is not a LeRobot policy: it runs in-process on the same env
+and seeds and is labelled so in its JSON and in the table (see ``PROMP_LABEL``).
+
 An existing result file with ``"status": "ok"`` is skipped (``--force`` reruns it). A failing training or
 evaluation writes the cell's file with ``"status": "error"``, the error and the log's path, and the script
 ends with exit status 1 after the other cells (an error cell is rerun on the next call). Nothing is
@@ -77,13 +80,18 @@ PLOT = REPO / "docs" / "compare_policies.png"
 SEED = 100000
 BUDGET_S = 120
 
-STEPS = {"cnmp": 9000, "act": 900, "diffusion": 600}
+STEPS = {"cnmp": 9000, "act": 900, "diffusion": 600, "promp": 0}
 BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of training loop per cell on a 2-core CPU "
                "(1 thread), converted once into fixed steps per method from the throughput measured on "
                "cnmp_obstacle2d with 5 demos (CNMP ~100 steps/s at batch 8 x 8 draws, ACT 7.4 and Diffusion 4.5 "
                f"steps/s at batch 32): {STEPS}; kept for every task and number of demos")
 
-METHODS = ("cnmp", "act", "diffusion")
+METHODS = ("cnmp", "act", "diffusion", "promp")
+STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
+PROMP_LABEL = ("in-process, not lerobot-eval: movement_primitives' ProMP (31 RBFs per dim, lerobot_cnmp.baselines."
+               "ProMPBaseline) fitted on the first N demos' actions, conditioned on the episode's conditions "
+               "(the env's own list, what observation.environment_state encodes), its mean commanded open loop "
+               "on the demos' schedule (step k -> phase k/199, then the goal); same env, same seeds")
 RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
 
 TASKS = {
@@ -92,6 +100,7 @@ TASKS = {
         "env": ["--env.type=cnmp_obstacle2d", "--env.render_mode=null"],
         "configs": {"cnmp": "configs/cnmp_obstacle2d.json", "act": "configs/act_cpu_obstacle2d.json",
                     "diffusion": "configs/diffusion_cpu_obstacle2d.json"},
+        "promp": True,  # the episode's conditions are points of the SM: ProMP can be conditioned on them
     },
     "cnmp_metaworld_reach": {
         "dataset": "datasets/cnmp_metaworld_reach",
@@ -272,6 +281,8 @@ def measure_latency(task: str, method: str, ckpt: Path, n_calls: int = 600) -> d
 
 def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episodes: int, batch_size: int) -> dict:
     """Train, evaluate and time one cell; return its result record (raises CellError on a failure)."""
+    if method == "promp":
+        return run_promp_cell(task, n, out=out, n_episodes=n_episodes)
     cell_dir = out / task / f"{method}_{n}demos"
     train_dir, eval_dir = cell_dir / "train", cell_dir / "eval"
     import shutil
@@ -318,6 +329,79 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     rec["seeds"] = list(range(SEED, SEED + n_episodes))
 
     rec.update(measure_latency(task, method, ckpt))
+    rec["status"] = "ok"
+    return rec
+
+
+DEMO_STEPS = 200
+
+
+def promp_cell(task: str, n: int, n_episodes: int) -> dict:
+    """ProMP on the task's env (see ``PROMP_LABEL``), in this process: the fit's time, success over the
+    episodes seeded ``SEED``..., and the p50 of conditioning + predicting one episode's plan."""
+    import gymnasium as gym
+    import numpy as np
+
+    import lerobot_cnmp.envs  # noqa: F401  (registers the gym ids)
+    from lerobot_cnmp.baselines import ProMPBaseline
+    from lerobot_cnmp.data import load_demos
+
+    data = load_demos(REPO / TASKS[task]["dataset"])
+    order = np.argsort(data["episode_index"])[:n]
+    if len(order) < n:
+        raise CellError(f"{task} has {len(order)} demos, {n} asked")
+    t0 = time.perf_counter()
+    promp = ProMPBaseline().fit([data["demos"][i] for i in order])
+    fit_s = time.perf_counter() - t0
+    env_cfg = env_config(task)
+    env = gym.make(env_cfg.gym_id, disable_env_checker=True, **env_cfg.gym_kwargs)
+    successes, plan_s = [], []
+    phases = np.linspace(0.0, 1.0, DEMO_STEPS)
+    try:
+        for i in range(n_episodes):
+            env.reset(seed=SEED + i)
+            t0 = time.perf_counter()
+            mean, _ = promp.predict(phases, list(env.unwrapped.conditions))
+            plan_s.append(time.perf_counter() - t0)
+            success, k = False, 0
+            while True:
+                _, _, term, trunc, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+                success |= bool(info["is_success"])
+                k += 1
+                if term or trunc:
+                    break
+            successes.append(success)
+    finally:
+        env.close()
+    return {"pc_success": 100.0 * float(np.mean(successes)), "n_episodes": n_episodes,
+            "seeds": list(range(SEED, SEED + n_episodes)), "fit_s": round(fit_s, 3),
+            "plan_p50_ms": round(float(np.percentile(np.asarray(plan_s) * 1e3, 50)), 3)}
+
+
+def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
+    """The ProMP cell in a child process of this script (its wall time and peak RSS are the whole cell's:
+    fit + episodes)."""
+    if not TASKS[task].get("promp"):
+        raise CellError(f"ProMP is not set up for {task}: its episodes carry no SM-point conditions to condition on")
+    cell_dir = out / task / f"promp_{n}demos"
+    cell_dir.mkdir(parents=True, exist_ok=True)
+    part = cell_dir / "promp_cell.json"
+    part.unlink(missing_ok=True)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--promp_cell", task, str(n), str(part),
+           f"--n_episodes={n_episodes}"]
+    rec = {"task": task, "method": "promp", "n_demos": n, "episodes": list(range(n)), "steps": 0,
+           "budget_rule": "ProMP is fitted in closed form (EM of movement_primitives), no training steps",
+           "date": dt.datetime.now().isoformat(timespec="seconds"), "label": PROMP_LABEL,
+           "eval_command": shlex.join(cmd), "train_command": None, "checkpoint": None, "host_cpus": os.cpu_count()}
+    r = run_logged(cmd, cell_dir / "promp.log", child_env())
+    if r["rc"] != 0 or not part.is_file():
+        raise CellError(f"the ProMP cell failed (exit {r['rc']}), log {cell_dir / 'promp.log'}:\n"
+                        f"{log_tail(cell_dir / 'promp.log')}", rec)
+    res = json.loads(part.read_text())
+    rec.update(res, train_wall_s=res["fit_s"], train_peak_rss_mb=r["peak_rss_mb"], cell_process_wall_s=r["wall_s"],
+               select_action_p50_ms=None, step_with_processors_p50_ms=None,
+               note="train_wall_s is the fit alone; train_peak_rss_mb is the peak of the whole cell's process "
+                    "(fit + episodes); no select_action: the plan is computed once per episode (plan_p50_ms)")
     rec["status"] = "ok"
     return rec
 
@@ -386,10 +470,13 @@ def report_table(recs: list[dict]) -> str:
             lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | **error**: {err} | | | | | | | "
                          f"{r.get('date', '')} |")
             continue
-        lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | {f(r['pc_success'])} | {r['n_episodes']} | "
+        method = r["method"] + (" (in-process†)" if r.get("label") else "")
+        lines.append(f"| {r['task']} | {method} | {r['n_demos']} | {f(r['pc_success'])} | {r['n_episodes']} | "
                      f"{r['steps']} | {f(r['train_wall_s'])} | {f(r['train_peak_rss_mb'], 0)} | "
                      f"{f(r['select_action_p50_ms'], 3)} | {f(r.get('step_with_processors_p50_ms'), 3)} | "
                      f"{r.get('date', '')[:10]} |")
+    labels = sorted({r["label"] for r in rows if r.get("status") == "ok" and r.get("label")})
+    lines += [f"\n† {text}" for text in labels]
     return "\n".join(lines)
 
 
@@ -441,7 +528,8 @@ def report(out: Path, plot: Path) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    p.add_argument("--methods", nargs="+", default=list(STOCK), choices=list(METHODS),
+                   help="promp: in-process ProMP (see PROMP_LABEL), only where the task's conditions allow it")
     p.add_argument("--demos", nargs="+", type=int, default=[5, 10])
     p.add_argument("--n_episodes", type=int, default=50)
     p.add_argument("--batch_size", type=int, default=10, help="lerobot-eval --eval.batch_size")
@@ -450,7 +538,12 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--report", action="store_true", help="only build the table and the plot from the result files")
     p.add_argument("--plot", type=Path, default=PLOT)
+    p.add_argument("--promp_cell", nargs=3, metavar=("TASK", "N", "OUT_JSON"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.promp_cell:
+        task, n, out_json = args.promp_cell
+        Path(out_json).write_text(json.dumps(promp_cell(task, int(n), args.n_episodes)))
+        return 0
     if args.report:
         print(report(args.out, args.plot))
         return 0

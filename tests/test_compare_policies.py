@@ -112,3 +112,17 @@ def test_commands(tmp_path):
     for task in cp.TASKS.values():
         for config in task["configs"].values():
             assert (cp.REPO / config).is_file(), config
+
+
+def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path):
+    with pytest.raises(cp.CellError, match="ProMP is not set up"):
+        cp.run_cell("cnmp_metaworld_reach", "promp", 5, out=tmp_path, steps=0, n_episodes=2, batch_size=1)
+
+
+def test_report_labels_in_process_rows(tmp_path):
+    _write(tmp_path, _ok("cnmp_obstacle2d", "cnmp", 5, 90.0))
+    _write(tmp_path, {**_ok("cnmp_obstacle2d", "cnmp", 5, 60.0), "method": "promp", "steps": 0,
+                      "label": cp.PROMP_LABEL, "select_action_p50_ms": None})
+    text = cp.report(tmp_path, tmp_path / "p.png")
+    assert "| cnmp_obstacle2d | promp (in-process†) | 5 | 60.0 |" in text
+    assert "† " + cp.PROMP_LABEL in text
