@@ -185,6 +185,20 @@ def log_tail(log: Path, n: int = 15) -> str:
     return "\n".join(lines[-n:])
 
 
+def train_loop_s(log: Path) -> float | None:
+    """The training loop's own time (LeRobot's progress bar at 100 %: start-up and saving excluded), or
+    None when the log has no finished bar."""
+    import re
+
+    if not Path(log).is_file():
+        return None
+    found = re.findall(r"Training: 100%\|[^\[]*\[(?:(\d+):)?(\d+):(\d+)<", Path(log).read_text(errors="replace"))
+    if not found:
+        return None
+    h, m, sec = found[-1]
+    return float(int(h or 0) * 3600 + int(m) * 60 + int(sec))
+
+
 def child_env() -> dict:
     env = dict(os.environ)
     env.setdefault("OMP_NUM_THREADS", "1")
@@ -301,7 +315,8 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     rec["train_command"] = shlex.join(cmd)
     rec["train_log"] = str(cell_dir / "train.log")
     r = run_logged(cmd, cell_dir / "train.log", env)
-    rec.update(train_wall_s=r["wall_s"], train_peak_rss_mb=r["peak_rss_mb"])
+    rec.update(train_wall_s=r["wall_s"], train_loop_s=train_loop_s(cell_dir / "train.log"),
+               train_peak_rss_mb=r["peak_rss_mb"])
     ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
     if r["rc"] != 0 or not (ckpt / "config.json").is_file():
         raise CellError(f"lerobot-train failed (exit {r['rc']}), log {cell_dir / 'train.log'}:\n"
@@ -448,6 +463,8 @@ def load_results(out: Path) -> list[dict]:
     recs = []
     for f in sorted(out.glob("*/*_*demos.json")):
         rec = json.loads(f.read_text())
+        if rec.get("train_log") and rec.get("train_loop_s") is None:
+            rec["train_loop_s"] = train_loop_s(rec["train_log"])
         rec["_file"] = str(f)
         recs.append(rec)
     return recs
@@ -457,9 +474,9 @@ def report_table(recs: list[dict]) -> str:
     """A markdown table of all result records (error cells shown as such)."""
     order = {m: i for i, m in enumerate(METHODS)}
     rows = sorted(recs, key=lambda r: (r["task"], r["n_demos"], order.get(r["method"], 99), r["method"]))
-    lines = ["| task | method | demos | pc_success | episodes | steps | train wall (s) | train peak RSS (MB) "
+    lines = ["| task | method | demos | pc_success | episodes | steps | train wall (s) | train loop (s) | train peak RSS (MB) "
              "| select_action p50 (ms) | step with processors p50 (ms) | date |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
 
     def f(v, nd=1):
         return "" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
@@ -467,12 +484,12 @@ def report_table(recs: list[dict]) -> str:
     for r in rows:
         if r.get("status") != "ok":
             err = str(r.get("error", "no status")).splitlines()[0][:120].replace("|", "\\|")
-            lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | **error**: {err} | | | | | | | "
+            lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | **error**: {err} | | | | | | | | "
                          f"{r.get('date', '')} |")
             continue
         method = r["method"] + (" (in-process†)" if r.get("label") else "")
         lines.append(f"| {r['task']} | {method} | {r['n_demos']} | {f(r['pc_success'])} | {r['n_episodes']} | "
-                     f"{r['steps']} | {f(r['train_wall_s'])} | {f(r['train_peak_rss_mb'], 0)} | "
+                     f"{r['steps']} | {f(r['train_wall_s'])} | {f(r.get('train_loop_s'), 0)} | {f(r['train_peak_rss_mb'], 0)} | "
                      f"{f(r['select_action_p50_ms'], 3)} | {f(r.get('step_with_processors_p50_ms'), 3)} | "
                      f"{r.get('date', '')[:10]} |")
     labels = sorted({r["label"] for r in rows if r.get("status") == "ok" and r.get("label")})

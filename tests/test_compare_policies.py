@@ -126,3 +126,13 @@ def test_report_labels_in_process_rows(tmp_path):
     text = cp.report(tmp_path, tmp_path / "p.png")
     assert "| cnmp_obstacle2d | promp (in-process†) | 5 | 60.0 |" in text
     assert "† " + cp.PROMP_LABEL in text
+
+
+def test_train_loop_time_from_the_log(tmp_path):
+    log = tmp_path / "train.log"
+    log.write_text("Training:  50%|#####     | 450/900 [00:59<00:59, 7.5step/s]\rTraining: 100%|##########| "
+                   "900/900 [02:03<00:00, 7.31step/s]\nINFO End of training\n")
+    assert cp.train_loop_s(log) == 123.0
+    log.write_text("Training:  50%|#####     | 450/900 [00:59<00:59, 7.5step/s]\nTraceback ...\n")
+    assert cp.train_loop_s(log) is None
+    assert cp.train_loop_s(tmp_path / "missing.log") is None
