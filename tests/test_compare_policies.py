@@ -15,7 +15,7 @@ import compare_policies as cp  # noqa: E402
 def _ok(task, method, n, pc):
     return {"task": task, "method": method, "n_demos": n, "status": "ok", "pc_success": pc, "n_episodes": 50,
             "steps": cp.STEPS[method], "train_wall_s": 100.0, "train_peak_rss_mb": 900.0,
-            "select_action_p50_ms": 0.8, "step_with_processors_p50_ms": 1.2, "date": "2026-12-02T03:00:00",
+            "select_action_p50_ms": 0.8, "select_action_p95_ms": 3.5, "step_with_processors_p50_ms": 1.2, "date": "2026-12-02T03:00:00",
             "budget_rule": cp.BUDGET_RULE}
 
 
@@ -84,7 +84,9 @@ def test_report_table_and_plot(tmp_path):
     text = cp.report(tmp_path, plot)
     rows = [line for line in text.splitlines() if line.startswith("| cnmp_")]
     assert len(rows) == 6
-    assert rows[0].startswith("| cnmp_metaworld_reach | cnmp | 5 | 70.0 | 50 |")
+    assert rows[0].startswith("| cnmp_obstacle2d | cnmp | 5 | 90.0 | 50 |")  # the tasks in TASKS' order
+    assert rows[4].startswith("| cnmp_metaworld_reach | cnmp | 5 | 70.0 | 50 |")
+    assert "| 0.800 / 3.50 | 1.200 |" in rows[0]
     assert "| cnmp_metaworld_reach | diffusion | 5 | **error**: CellError: lerobot-train failed (exit 1) |" in text
     assert "| cnmp_obstacle2d | act | 10 | 44.0 |" in text
     # methods in the table's order: cnmp before act for the same task and demos
