@@ -512,25 +512,34 @@ def report_plot(recs: list[dict], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     ok = [r for r in recs if r.get("status") == "ok"]
-    tasks = sorted({r["task"] for r in recs})
+    order = {t: i for i, t in enumerate(TASKS)}
+    tasks = sorted({r["task"] for r in recs}, key=lambda t: (order.get(t, 99), t))
     if not tasks:
         raise ValueError("no result files to plot")
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.4 * len(tasks), 3.8), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         for method in [m for m in METHODS if any(r["method"] == m for r in ok)] + \
                       sorted({r["method"] for r in ok} - set(METHODS)):
             pts = sorted((r["n_demos"], r["pc_success"]) for r in ok if r["task"] == task and r["method"] == method)
             if pts:
-                ax.plot(*zip(*pts, strict=True), marker="o", label=method)
+                in_process = any(r.get("label") for r in ok if r["method"] == method)
+                ax.plot(*zip(*pts, strict=True), marker="o", label=method + (" (in-process)" if in_process else ""),
+                        linestyle=":" if in_process else "-")
         ax.set_title(task)
         ax.set_xlabel("demonstrations")
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
         ns = sorted({r["n_demos"] for r in recs if r["task"] == task})
         ax.set_xticks(ns)
-    axes[0][0].set_ylabel("lerobot-eval pc_success")
-    axes[0][-1].legend()
-    fig.tight_layout()
+    axes[0][0].set_ylabel("pc_success (%)")
+    handles = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), frameon=False)
+    fig.suptitle("success vs demonstrations (50 episodes, seeds 100000..; equal training wall time per cell)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
