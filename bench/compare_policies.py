@@ -35,7 +35,8 @@ Methods and their configs (no images anywhere: ``observation.state`` + ``observa
   parameters on obstacle2d (the default ACT has ~40 M).
 - ``diffusion``: ``configs/diffusion_cpu_<task>.json``: LeRobot's Diffusion Policy (1-D conv U-Net) with
   down_dims (64, 128), diffusion_step_embed_dim 64, kernel 5, n_obs_steps 2, horizon 16, n_action_steps 8,
-  DDIM with 100 training timesteps and 10 inference steps, lr 3e-4 (100 warm-up steps, cosine), batch 32.
+  DDIM with 100 training timesteps and 10 inference steps, lr 3e-4 (100 warm-up steps, cosine), batch 32;
+  1.11 M parameters on obstacle2d, 1.06 M on MetaWorld (the default down_dims are (512, 1024, 2048)).
 
 MetaWorld: the dataset stores γ (first frame's object and goal positions) as ``observation.task_params``,
 which ACT and Diffusion do not read (they take ``observation.state``, ``observation.environment_state`` and
@@ -51,7 +52,9 @@ method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps
 machine: CNMP ~100 steps/s at batch 8 × 8 draws; ACT 7.4 steps/s and Diffusion 4.5 steps/s at batch 32,
 LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``. CNMP's 9000 is
 its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides it; the cell's JSON
-records the steps used and the rule.
+records the steps used, the rule, the process wall time and the training loop's own time (``train_loop_s``,
+LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thousand samples per demo): the
+table says what each method reaches in ~2 min of CPU, not at its plateau.
 
 ```bash
 python bench/compare_policies.py --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
