@@ -1,0 +1,590 @@
+"""CNMP against LeRobot's ACT and Diffusion Policy by number of demonstrations, through the stock CLIs.
+
+One cell of the table = (task, method, number of demos N). For each cell this script:
+
+1. trains with stock ``lerobot-train`` on the first N episodes of the task's committed dataset
+   (LeRobot's own ``--dataset.episodes=[0,...,N-1]``: LeRobot's sampler then draws frames of those episodes
+   only; the normalization statistics are the dataset's ``meta/stats.json``, i.e. of all its episodes, for
+   every method alike: CNMP's in-memory bank computes its statistics over all episodes too, but draws its
+   training episodes from the sampler's episode ids), with the method's committed config under ``configs/``;
+   it measures the training process's wall time (start-up included) and peak RSS (``os.wait4``'s rusage of
+   that process);
+2. evaluates with stock ``lerobot-eval`` on fixed seeds (``--seed=100000``, ``--eval.n_episodes`` 50,
+   ``--eval.batch_size=10``, no videos: ``--env.render_mode=null``) and reads ``pc_success`` from its
+   ``eval_info.json``;
+3. times ``select_action`` in this process on the trained checkpoint with its processors, on observations
+   of the task's env (one env, seeds 100000..., LeRobot's rollout order: env preprocessor, preprocessor,
+   ``select_action``, postprocessor): p50 of ``select_action`` alone and of the whole step. ACT and
+   Diffusion predict chunks, so most of their calls pop a queued action; their p95 / max are recorded too;
+4. writes ``outputs/compare/<task>/<method>_<N>demos.json``.
+
+``promp`` (``--methods promp``, obstacle2d only) is not a LeRobot policy: it runs in-process on the same env
+and seeds and is labelled so in its JSON and in the table (see ``PROMP_LABEL``).
+
+An existing result file with ``"status": "ok"`` is skipped (``--force`` reruns it). A failing training or
+evaluation writes the cell's file with ``"status": "error"``, the error and the log's path, and the script
+ends with exit status 1 after the other cells (an error cell is rerun on the next call). Nothing is
+hard-coded: every figure is read from the CLIs' outputs.
+
+Methods and their configs (no images anywhere: ``observation.state`` + ``observation.environment_state``):
+
+- ``cnmp``: the project's configs (``configs/cnmp_obstacle2d.json``, ``configs/cnmp_metaworld_reach.json``).
+- ``act``: ``configs/act_cpu_<task>.json``: LeRobot's ACT shrunk for CPU: dim_model 128, 4 heads,
+  dim_feedforward 512, 2 encoder layers, 1 decoder layer, no VAE (``use_vae=false``), no vision backbone
+  (none is built without image features), chunk_size = n_action_steps = 20, lr 1e-4, batch 32; 0.67 M
+  parameters on obstacle2d (the default ACT has ~40 M).
+- ``diffusion``: ``configs/diffusion_cpu_<task>.json``: LeRobot's Diffusion Policy (1-D conv U-Net) with
+  down_dims (64, 128), diffusion_step_embed_dim 64, kernel 5, n_obs_steps 2, horizon 16, n_action_steps 8,
+  DDIM with 100 training timesteps and 10 inference steps, lr 3e-4 (100 warm-up steps, cosine), batch 32;
+  1.11 M parameters on obstacle2d, 1.06 M on MetaWorld (the default down_dims are (512, 1024, 2048)).
+
+MetaWorld: the dataset stores γ (first frame's object and goal positions) as ``observation.task_params``,
+which ACT and Diffusion do not read (they take ``observation.state``, ``observation.environment_state`` and
+images). For them this script derives a copy of the dataset with that column renamed to
+``observation.environment_state`` (LeRobot's ``dataset_tools.modify_features``; same values, same
+statistics) under ``outputs/compare/datasets/``, and ``lerobot-eval`` gets
+``--rename_map={"observation.task_params": "observation.environment_state"}`` (the env's processor names γ
+``observation.task_params``, CNMP's name). So every method sees the same inputs.
+
+Training budget rule (``BUDGET_RULE``): the same training wall time for every method, about 120 s of
+training loop per cell on this 2-core CPU (one thread), converted once into a fixed number of steps per
+method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps (2026-12-02, shared
+machine: CNMP ~100 steps/s at batch 8 × 8 draws; ACT 7.4 steps/s and Diffusion 4.5 steps/s at batch 32,
+LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``. CNMP's 9000 is
+its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides it; the cell's JSON
+records the steps used, the rule, the process wall time and the training loop's own time (``train_loop_s``,
+LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thousand samples per demo): the
+table says what each method reaches in ~2 min of CPU, not at its plateau.
+
+```bash
+python bench/compare_policies.py --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
+python bench/compare_policies.py --report   # outputs/compare/report.md and docs/compare_policies.png
+```
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPO, provenance  # noqa: E402
+
+BIN = Path(sys.executable).parent
+OUT = REPO / "outputs" / "compare"
+PLOT = REPO / "docs" / "compare_policies.png"
+SEED = 100000
+BUDGET_S = 120
+
+STEPS = {"cnmp": 9000, "act": 900, "diffusion": 600, "promp": 0}
+BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of training loop per cell on a 2-core CPU "
+               "(1 thread), converted once into fixed steps per method from the throughput measured on "
+               "cnmp_obstacle2d with 5 demos (CNMP ~100 steps/s at batch 8 x 8 draws, ACT 7.4 and Diffusion 4.5 "
+               f"steps/s at batch 32): {STEPS}; kept for every task and number of demos")
+
+METHODS = ("cnmp", "act", "diffusion", "promp")
+STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
+PROMP_LABEL = ("in-process, not lerobot-eval: movement_primitives' ProMP (31 RBFs per dim, lerobot_cnmp.baselines."
+               "ProMPBaseline) fitted on the first N demos' actions, conditioned on the episode's conditions "
+               "(the env's own list, what observation.environment_state encodes), its mean commanded open loop "
+               "on the demos' schedule (step k -> phase k/199, then the goal); same env, same seeds")
+RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
+
+TASKS = {
+    "cnmp_obstacle2d": {
+        "dataset": "datasets/cnmp_obstacle2d",
+        "env": ["--env.type=cnmp_obstacle2d", "--env.render_mode=null"],
+        "configs": {"cnmp": "configs/cnmp_obstacle2d.json", "act": "configs/act_cpu_obstacle2d.json",
+                    "diffusion": "configs/diffusion_cpu_obstacle2d.json"},
+        "promp": True,  # the episode's conditions are points of the SM: ProMP can be conditioned on them
+    },
+    "cnmp_metaworld_reach": {
+        "dataset": "datasets/cnmp_metaworld_reach",
+        "env": ["--env.type=cnmp_metaworld", "--env.task=reach-v3"],
+        "configs": {"cnmp": "configs/cnmp_metaworld_reach.json", "act": "configs/act_cpu_metaworld_reach.json",
+                    "diffusion": "configs/diffusion_cpu_metaworld_reach.json"},
+        # ACT / Diffusion read γ as observation.environment_state: a renamed copy (see the docstring)
+        "env_state_copy": {"act", "diffusion"},
+    },
+}
+
+
+class CellError(RuntimeError):
+    """A training, evaluation or measurement of one cell failed."""
+
+
+def result_path(out: Path, task: str, method: str, n: int) -> Path:
+    return out / task / f"{method}_{n}demos.json"
+
+
+def should_run(path: Path, force: bool) -> bool:
+    """A cell runs unless its result file exists with status ok (``force`` reruns it anyway). An unreadable
+    file or an error cell runs again."""
+    if force or not path.is_file():
+        return True
+    try:
+        return json.loads(path.read_text()).get("status") != "ok"
+    except (OSError, ValueError):
+        return True
+
+
+def env_state_copy(task: str, out: Path) -> Path:
+    """The task's dataset with ``observation.task_params`` renamed to ``observation.environment_state``
+    (same values and statistics), made once under ``out/datasets/``."""
+    import numpy as np
+    from lerobot.datasets.dataset_tools import modify_features
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    src_root = REPO / TASKS[task]["dataset"]
+    dst = out / "datasets" / f"{Path(src_root).name}_envstate"
+    if (dst / "meta" / "stats.json").is_file():
+        stats = json.loads((dst / "meta" / "stats.json").read_text())
+        if "observation.environment_state" in stats:
+            return dst
+    import shutil
+
+    shutil.rmtree(dst, ignore_errors=True)
+    src = LeRobotDataset(f"lerobot-cnmp/{src_root.name}", root=src_root)
+    key = "observation.task_params"
+    values = np.stack([np.asarray(x, dtype=np.float32) for x in src.hf_dataset.with_format("numpy")[key]])
+    modify_features(src, add_features={"observation.environment_state": (values, dict(src.meta.features[key]))},
+                    remove_features=[key], output_dir=dst, repo_id=f"lerobot-cnmp/{dst.name}")
+    # modify_features writes no statistics for an added feature: the values are the same, so are the stats
+    stats_file = dst / "meta" / "stats.json"
+    stats = json.loads(stats_file.read_text())
+    src_stats = json.loads((src_root / "meta" / "stats.json").read_text())
+    stats["observation.environment_state"] = src_stats[key]
+    stats.pop(key, None)
+    stats_file.write_text(json.dumps(stats, indent=4))
+    return dst
+
+
+def run_logged(cmd: list[str], log: Path, env: dict) -> dict:
+    """Run ``cmd`` with stdout and stderr to ``log``; its wall time, exit status and peak RSS (MB, from
+    ``os.wait4``: that process and the children it waited for)."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        f.write("$ " + shlex.join(cmd) + "\n")
+        f.flush()
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=REPO)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return {"rc": proc.returncode, "wall_s": round(time.perf_counter() - t0, 2),
+            "peak_rss_mb": round(usage.ru_maxrss / 1024, 1)}
+
+
+def log_tail(log: Path, n: int = 15) -> str:
+    """The last ``n`` lines of a log that are not progress bars."""
+    lines = [x for x in log.read_text(errors="replace").replace("\r", "\n").splitlines()
+             if x.strip() and "it/s]" not in x and "step/s]" not in x and "s/it]" not in x]
+    return "\n".join(lines[-n:])
+
+
+def train_loop_s(log: Path) -> float | None:
+    """The training loop's own time (LeRobot's progress bar at 100 %: start-up and saving excluded), or
+    None when the log has no finished bar."""
+    import re
+
+    if not Path(log).is_file():
+        return None
+    found = re.findall(r"Training: 100%\|[^\[]*\[(?:(\d+):)?(\d+):(\d+)<", Path(log).read_text(errors="replace"))
+    if not found:
+        return None
+    h, m, sec = found[-1]
+    return float(int(h or 0) * 3600 + int(m) * 60 + int(sec))
+
+
+def child_env() -> dict:
+    env = dict(os.environ)
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.setdefault("HF_HUB_OFFLINE", "1")
+    env.setdefault("MUJOCO_GL", "egl")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def train_command(task: str, method: str, n: int, steps: int, out_dir: Path, dataset_root: Path | None) -> list[str]:
+    cmd = [str(BIN / "lerobot-train"), f"--config_path={TASKS[task]['configs'][method]}", "--policy.device=cpu",
+           f"--dataset.episodes=[{','.join(str(i) for i in range(n))}]", f"--steps={steps}", f"--save_freq={steps}",
+           f"--job_name={task}_{method}_{n}demos", f"--output_dir={out_dir}"]
+    if dataset_root is not None:
+        cmd.insert(2, f"--dataset.root={dataset_root.relative_to(REPO) if REPO in dataset_root.parents else dataset_root}")
+    return cmd
+
+
+def eval_command(task: str, method: str, ckpt: Path, n_episodes: int, batch_size: int, out_dir: Path) -> list[str]:
+    cmd = [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", *TASKS[task]["env"], f"--eval.n_episodes={n_episodes}",
+           f"--eval.batch_size={batch_size}", "--policy.device=cpu", f"--seed={SEED}", f"--output_dir={out_dir}"]
+    if method in TASKS[task].get("env_state_copy", ()):
+        cmd.append("--rename_map=" + json.dumps(RENAME_ENV_STATE))
+    return cmd
+
+
+def env_config(task: str):
+    """The task's EnvConfig built from the same ``--env.*`` arguments that lerobot-eval gets (``type`` picks
+    the registered class, the others are string fields or ``null``)."""
+    from lerobot.envs.configs import EnvConfig
+
+    import lerobot_cnmp.envs  # noqa: F401  (registers the env types)
+
+    kw = dict(a.removeprefix("--env.").split("=", 1) for a in TASKS[task]["env"])
+    cls = EnvConfig.get_choice_class(kw.pop("type"))
+    return cls(**{k: (None if v == "null" else v) for k, v in kw.items()})
+
+
+def measure_latency(task: str, method: str, ckpt: Path, n_calls: int = 600) -> dict:
+    """p50 / p95 / max (ms) of ``select_action`` alone and of preprocessor + select_action + postprocessor on
+    one env of the task, LeRobot's rollout order, episodes seeded from ``SEED``, ``n_calls`` steps."""
+    import numpy as np
+    import torch
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.envs.utils import preprocess_observation
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    torch.set_num_threads(1)
+    env_cfg = env_config(task)
+    cfg = PreTrainedConfig.from_pretrained(ckpt)
+    cfg.pretrained_path = Path(ckpt)
+    cfg.device = "cpu"
+    rename = RENAME_ENV_STATE if method in TASKS[task].get("env_state_copy", ()) else {}
+    policy = make_policy(cfg=cfg, env_cfg=env_cfg, rename_map=rename)
+    policy.eval()
+    pre, post = make_pre_post_processors(policy_cfg=cfg, pretrained_path=ckpt, preprocessor_overrides={
+        "device_processor": {"device": "cpu"}, "rename_observations_processor": {"rename_map": rename}})
+    env_pre, env_post = make_env_pre_post_processors(env_cfg=env_cfg, policy_cfg=cfg)
+    env = next(iter(make_env(env_cfg, n_envs=1, use_async_envs=False)[env_cfg.type].values()))
+    sel, whole = [], []
+    seed = SEED
+    try:
+        obs, _ = env.reset(seed=[seed])
+        policy.reset()
+        while len(sel) < n_calls:
+            t0 = time.perf_counter()
+            batch = preprocess_observation(obs)
+            batch["task"] = [""]
+            batch = pre(env_pre(batch))
+            t1 = time.perf_counter()
+            with torch.inference_mode():
+                action = policy.select_action(batch)
+            t2 = time.perf_counter()
+            action = env_post({"action": post(action)})["action"]
+            t3 = time.perf_counter()
+            sel.append(t2 - t1)
+            whole.append(t3 - t0)
+            obs, _, term, trunc, _ = env.step(action.to("cpu").numpy())
+            if term[0] or trunc[0]:
+                seed += 1
+                obs, _ = env.reset(seed=[seed])
+                policy.reset()
+    finally:
+        env.close()
+
+    def q(x, p):
+        return round(float(np.percentile(np.asarray(x) * 1e3, p)), 4)
+
+    return {"select_action_p50_ms": q(sel, 50), "select_action_p95_ms": q(sel, 95),
+            "select_action_max_ms": round(max(sel) * 1e3, 4), "step_with_processors_p50_ms": q(whole, 50),
+            "latency_calls": n_calls, "latency_episode_seeds": list(range(SEED, seed + 1))}
+
+
+def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episodes: int, batch_size: int) -> dict:
+    """Train, evaluate and time one cell; return its result record (raises CellError on a failure)."""
+    if method == "promp":
+        return run_promp_cell(task, n, out=out, n_episodes=n_episodes)
+    cell_dir = out / task / f"{method}_{n}demos"
+    train_dir, eval_dir = cell_dir / "train", cell_dir / "eval"
+    import shutil
+
+    shutil.rmtree(cell_dir, ignore_errors=True)  # lerobot-train refuses an existing output dir
+    dataset_root = env_state_copy(task, out) if method in TASKS[task].get("env_state_copy", ()) else None
+    n_total = json.loads((REPO / TASKS[task]["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
+    if n > n_total:
+        raise CellError(f"{task} has {n_total} demos, {n} asked")
+    rec = {"task": task, "method": method, "n_demos": n, "episodes": list(range(n)), "steps": steps,
+           "budget_rule": BUDGET_RULE, "date": dt.datetime.now().isoformat(timespec="seconds"),
+           "config": TASKS[task]["configs"][method], "host_cpus": os.cpu_count()}
+    env = child_env()
+
+    cmd = train_command(task, method, n, steps, train_dir, dataset_root)
+    rec["train_command"] = shlex.join(cmd)
+    rec["train_log"] = str(cell_dir / "train.log")
+    r = run_logged(cmd, cell_dir / "train.log", env)
+    rec.update(train_wall_s=r["wall_s"], train_loop_s=train_loop_s(cell_dir / "train.log"),
+               train_peak_rss_mb=r["peak_rss_mb"])
+    ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
+    if r["rc"] != 0 or not (ckpt / "config.json").is_file():
+        raise CellError(f"lerobot-train failed (exit {r['rc']}), log {cell_dir / 'train.log'}:\n"
+                        f"{log_tail(cell_dir / 'train.log')}", rec)
+    rec["checkpoint"] = provenance(ckpt)
+    if rec["checkpoint"]["step"] != steps:
+        raise CellError(f"the checkpoint is at step {rec['checkpoint']['step']}, not {steps}", rec)
+
+    cmd = eval_command(task, method, ckpt, n_episodes, batch_size, eval_dir)
+    rec["eval_command"] = shlex.join(cmd)
+    rec["eval_log"] = str(cell_dir / "eval.log")
+    r = run_logged(cmd, cell_dir / "eval.log", env)
+    rec.update(eval_wall_s=r["wall_s"], eval_peak_rss_mb=r["peak_rss_mb"])
+    info_file = eval_dir / "eval_info.json"
+    if r["rc"] != 0 or not info_file.is_file():
+        raise CellError(f"lerobot-eval failed (exit {r['rc']}), log {cell_dir / 'eval.log'}:\n"
+                        f"{log_tail(cell_dir / 'eval.log')}", rec)
+    info = json.loads(info_file.read_text())
+    overall = info["overall"]
+    if overall.get("n_episodes") != n_episodes:
+        raise CellError(f"eval_info.json has {overall.get('n_episodes')} episodes, {n_episodes} asked", rec)
+    rec.update(pc_success=float(overall["pc_success"]), n_episodes=int(overall["n_episodes"]),
+               avg_sum_reward=overall.get("avg_sum_reward"), eval_info=str(info_file))
+    # lerobot-eval seeds batch b's env i with seed + b * batch_size + i: episode k has seed + k
+    rec["seeds"] = list(range(SEED, SEED + n_episodes))
+
+    rec.update(measure_latency(task, method, ckpt))
+    rec["status"] = "ok"
+    return rec
+
+
+DEMO_STEPS = 200
+
+
+def promp_cell(task: str, n: int, n_episodes: int) -> dict:
+    """ProMP on the task's env (see ``PROMP_LABEL``), in this process: the fit's time, success over the
+    episodes seeded ``SEED``..., and the p50 of conditioning + predicting one episode's plan."""
+    import gymnasium as gym
+    import numpy as np
+
+    import lerobot_cnmp.envs  # noqa: F401  (registers the gym ids)
+    from lerobot_cnmp.baselines import ProMPBaseline
+    from lerobot_cnmp.data import load_demos
+
+    data = load_demos(REPO / TASKS[task]["dataset"])
+    order = np.argsort(data["episode_index"])[:n]
+    if len(order) < n:
+        raise CellError(f"{task} has {len(order)} demos, {n} asked")
+    t0 = time.perf_counter()
+    promp = ProMPBaseline().fit([data["demos"][i] for i in order])
+    fit_s = time.perf_counter() - t0
+    env_cfg = env_config(task)
+    env = gym.make(env_cfg.gym_id, disable_env_checker=True, **env_cfg.gym_kwargs)
+    successes, plan_s = [], []
+    phases = np.linspace(0.0, 1.0, DEMO_STEPS)
+    try:
+        for i in range(n_episodes):
+            env.reset(seed=SEED + i)
+            t0 = time.perf_counter()
+            mean, _ = promp.predict(phases, list(env.unwrapped.conditions))
+            plan_s.append(time.perf_counter() - t0)
+            success, k = False, 0
+            while True:
+                _, _, term, trunc, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+                success |= bool(info["is_success"])
+                k += 1
+                if term or trunc:
+                    break
+            successes.append(success)
+    finally:
+        env.close()
+    return {"pc_success": 100.0 * float(np.mean(successes)), "n_episodes": n_episodes,
+            "seeds": list(range(SEED, SEED + n_episodes)), "fit_s": round(fit_s, 3),
+            "plan_p50_ms": round(float(np.percentile(np.asarray(plan_s) * 1e3, 50)), 3)}
+
+
+def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
+    """The ProMP cell in a child process of this script (its wall time and peak RSS are the whole cell's:
+    fit + episodes)."""
+    if not TASKS[task].get("promp"):
+        raise CellError(f"ProMP is not set up for {task}: its episodes carry no SM-point conditions to condition on")
+    cell_dir = out / task / f"promp_{n}demos"
+    cell_dir.mkdir(parents=True, exist_ok=True)
+    part = cell_dir / "promp_cell.json"
+    part.unlink(missing_ok=True)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--promp_cell", task, str(n), str(part),
+           f"--n_episodes={n_episodes}"]
+    rec = {"task": task, "method": "promp", "n_demos": n, "episodes": list(range(n)), "steps": 0,
+           "budget_rule": "ProMP is fitted in closed form (EM of movement_primitives), no training steps",
+           "date": dt.datetime.now().isoformat(timespec="seconds"), "label": PROMP_LABEL,
+           "eval_command": shlex.join(cmd), "train_command": None, "checkpoint": None, "host_cpus": os.cpu_count()}
+    r = run_logged(cmd, cell_dir / "promp.log", child_env())
+    if r["rc"] != 0 or not part.is_file():
+        raise CellError(f"the ProMP cell failed (exit {r['rc']}), log {cell_dir / 'promp.log'}:\n"
+                        f"{log_tail(cell_dir / 'promp.log')}", rec)
+    res = json.loads(part.read_text())
+    rec.update(res, train_wall_s=res["fit_s"], train_peak_rss_mb=r["peak_rss_mb"], cell_process_wall_s=r["wall_s"],
+               select_action_p50_ms=None, step_with_processors_p50_ms=None,
+               note="train_wall_s is the fit alone; train_peak_rss_mb is the peak of the whole cell's process "
+                    "(fit + episodes); no select_action: the plan is computed once per episode (plan_p50_ms)")
+    rec["status"] = "ok"
+    return rec
+
+
+def run(args) -> int:
+    steps = dict(STEPS)
+    for s in args.steps or []:
+        m, _, v = s.partition("=")
+        if m not in METHODS or not v.isdigit():
+            raise SystemExit(f"--steps takes METHOD=N with METHOD in {METHODS}, got {s!r}")
+        steps[m] = int(v)
+    failed = []
+    for task in args.tasks:
+        for n in args.demos:
+            for method in args.methods:
+                path = result_path(args.out, task, method, n)
+                if not should_run(path, args.force):
+                    print(f"skip {task} {method} {n} demos: {path} exists (--force reruns it)", flush=True)
+                    continue
+                print(f"run  {task} {method} {n} demos ({steps[method]} steps)", flush=True)
+                t0 = time.perf_counter()
+                try:
+                    rec = run_cell(task, method, n, out=args.out, steps=steps[method], n_episodes=args.n_episodes,
+                                   batch_size=args.batch_size)
+                except (Exception, SystemExit) as e:  # noqa: BLE001 - recorded in the cell's file; the run ends non-zero
+                    partial = e.args[1] if isinstance(e, CellError) and len(e.args) > 1 else {}
+                    rec = {**partial, "task": task, "method": method, "n_demos": n, "status": "error",
+                           "error": f"{type(e).__name__}: {e.args[0] if e.args else e}"}
+                    failed.append(path)
+                rec["cell_wall_s"] = round(time.perf_counter() - t0, 1)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps(rec, indent=2))
+                print(f"     -> {rec['status']}: pc_success {rec.get('pc_success')} train {rec.get('train_wall_s')} s, "
+                      f"{path}", flush=True)
+                if rec["status"] != "ok":
+                    print(rec["error"][-2000:], file=sys.stderr, flush=True)
+    if failed:
+        print(f"{len(failed)} cell(s) failed: " + ", ".join(map(str, failed)), file=sys.stderr)
+        return 1
+    return 0
+
+
+def load_results(out: Path) -> list[dict]:
+    recs = []
+    for f in sorted(out.glob("*/*_*demos.json")):
+        rec = json.loads(f.read_text())
+        if rec.get("train_log") and rec.get("train_loop_s") is None:
+            rec["train_loop_s"] = train_loop_s(rec["train_log"])
+        rec["_file"] = str(f)
+        recs.append(rec)
+    return recs
+
+
+def report_table(recs: list[dict]) -> str:
+    """A markdown table of all result records (error cells shown as such)."""
+    order = {m: i for i, m in enumerate(METHODS)}
+    tasks = {t: i for i, t in enumerate(TASKS)}
+    rows = sorted(recs, key=lambda r: (tasks.get(r["task"], 99), r["task"], r["n_demos"], order.get(r["method"], 99),
+                                       r["method"]))
+    lines = ["| task | method | demos | pc_success | episodes | steps | train wall (s) | train loop (s) | train peak RSS (MB) "
+             "| select_action p50 / p95 (ms) | step with processors p50 (ms) | date |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+
+    def f(v, nd=1):
+        return "" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+    for r in rows:
+        if r.get("status") != "ok":
+            err = str(r.get("error", "no status")).splitlines()[0][:120].replace("|", "\\|")
+            lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | **error**: {err} | | | | | | | | "
+                         f"{r.get('date', '')} |")
+            continue
+        method = r["method"] + (" (in-process†)" if r.get("label") else "")
+        sel = "" if r.get("select_action_p50_ms") is None else \
+            f"{f(r['select_action_p50_ms'], 3)} / {f(r.get('select_action_p95_ms'), 2)}"
+        lines.append(f"| {r['task']} | {method} | {r['n_demos']} | {f(r['pc_success'])} | {r['n_episodes']} | "
+                     f"{r['steps']} | {f(r['train_wall_s'])} | {f(r.get('train_loop_s'), 0)} | {f(r['train_peak_rss_mb'], 0)} | "
+                     f"{sel} | {f(r.get('step_with_processors_p50_ms'), 3)} | "
+                     f"{r.get('date', '')[:10]} |")
+    labels = sorted({r["label"] for r in rows if r.get("status") == "ok" and r.get("label")})
+    if any(r.get("method") in ("act", "diffusion") for r in rows):
+        lines.append("\nACT and Diffusion predict action chunks: most select_action calls pop a queued action "
+                     "(p50); the p95 includes the calls that run the network.")
+    lines += [f"\n† {text}" for text in labels]
+    return "\n".join(lines)
+
+
+def report_plot(recs: list[dict], path: Path) -> Path:
+    """Success vs number of demos, one line per method, one panel per task (ok cells only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in recs if r.get("status") == "ok"]
+    order = {t: i for i, t in enumerate(TASKS)}
+    tasks = sorted({r["task"] for r in recs}, key=lambda t: (order.get(t, 99), t))
+    if not tasks:
+        raise ValueError("no result files to plot")
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.4 * len(tasks), 3.8), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        for method in [m for m in METHODS if any(r["method"] == m for r in ok)] + \
+                      sorted({r["method"] for r in ok} - set(METHODS)):
+            pts = sorted((r["n_demos"], r["pc_success"]) for r in ok if r["task"] == task and r["method"] == method)
+            if pts:
+                in_process = any(r.get("label") for r in ok if r["method"] == method)
+                ax.plot(*zip(*pts, strict=True), marker="o", label=method + (" (in-process)" if in_process else ""),
+                        linestyle=":" if in_process else "-")
+        ax.set_title(task)
+        ax.set_xlabel("demonstrations")
+        ax.set_ylim(-3, 103)
+        ax.grid(alpha=0.3)
+        ns = sorted({r["n_demos"] for r in recs if r["task"] == task})
+        ax.set_xticks(ns)
+    axes[0][0].set_ylabel("pc_success (%)")
+    handles = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), frameon=False)
+    fig.suptitle("success vs demonstrations (50 episodes, seeds 100000..; equal training wall time per cell)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def report(out: Path, plot: Path) -> str:
+    recs = load_results(out)
+    if not recs:
+        raise SystemExit(f"no result files under {out}")
+    table = report_table(recs)
+    text = (f"# Policy comparison\n\nBudget rule: {recs[0].get('budget_rule', BUDGET_RULE)}\n\n{table}\n\n"
+            f"Seeds: lerobot-eval --seed={SEED}; commands in each cell's JSON under {out}.\n")
+    (out / "report.md").write_text(text)
+    report_plot(recs, plot)
+    return text
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    p.add_argument("--methods", nargs="+", default=list(STOCK), choices=list(METHODS),
+                   help="promp: in-process ProMP (see PROMP_LABEL), only where the task's conditions allow it")
+    p.add_argument("--demos", nargs="+", type=int, default=[5, 10])
+    p.add_argument("--n_episodes", type=int, default=50)
+    p.add_argument("--batch_size", type=int, default=10, help="lerobot-eval --eval.batch_size")
+    p.add_argument("--steps", action="append", help=f"METHOD=N: override the budget's steps {STEPS} (recorded)")
+    p.add_argument("--force", action="store_true", help="rerun cells whose result file exists")
+    p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--report", action="store_true", help="only build the table and the plot from the result files")
+    p.add_argument("--plot", type=Path, default=PLOT)
+    p.add_argument("--promp_cell", nargs=3, metavar=("TASK", "N", "OUT_JSON"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.promp_cell:
+        task, n, out_json = args.promp_cell
+        Path(out_json).write_text(json.dumps(promp_cell(task, int(n), args.n_episodes)))
+        return 0
+    if args.report:
+        print(report(args.out, args.plot))
+        return 0
+    return run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
