@@ -49,17 +49,17 @@ class SO101ScriptedTeleopConfig(TeleoperatorConfig):
     ``fps`` seconds (the recorder's reset period) and holds it. Like a person's leader arm it moves on the wall
     clock: a call returns the pose of the time elapsed since the demo's start, so a recorder loop that runs
     slower than ``fps`` (a loaded machine) records fewer frames of the same motion, not a slower motion.
-    A pause of more than ``new_demo_gap_s`` between two calls (the recorder saving an episode) starts the next
-    demo once the current one has played its whole cycle (at least 90 % of (episode_steps + reset_steps) /
-    fps); an earlier pause (the loop stalled mid-episode) does not. Demos thus stay aligned with the
-    recorder's episodes. Goals: ``start_deg + reach_deg`` with shoulder_pan uniform in ``pan_range_deg``,
+    A pause of more than ``new_demo_gap_s`` between two calls (the recorder saving an episode: 0.09-0.12 s
+    measured with LeRobot 0.6.1 here) starts the next demo once the current one has played its whole cycle
+    (at least 95 % of (episode_steps + reset_steps) / fps); an earlier pause (the loop stalled mid-episode)
+    does not. Demos thus stay aligned with the recorder's episodes. Goals: ``start_deg + reach_deg`` with shoulder_pan uniform in ``pan_range_deg``,
     demo k's drawn from ``(seed, k)``. Record with ``--dataset.fps`` = fps, ``--dataset.episode_time_s`` ≈
     episode_steps / fps and ``--dataset.reset_time_s`` ≈ reset_steps / fps."""
 
     episode_steps: int = 45
     reset_steps: int = 15
     fps: float = 30.0
-    new_demo_gap_s: float = 0.1
+    new_demo_gap_s: float = 0.05  # 1.5 control periods at 30 Hz
     seed: int = 0
     start_deg: tuple[float, ...] = HOME_DEG
     pan_range_deg: tuple[float, float] = (-40.0, 40.0)

@@ -193,7 +193,7 @@ class SO101ScriptedTeleop(Teleoperator):
             raise RuntimeError(f"{self} is not connected")
         c = self.config
         now = time.perf_counter()
-        cycle_s = 0.9 * (c.episode_steps + c.reset_steps) / c.fps
+        cycle_s = 0.95 * (c.episode_steps + c.reset_steps) / c.fps
         if self._last_call is None or (now - self._last_call > c.new_demo_gap_s and now - self._demo_start >= cycle_s):
             self._demo, self._demo_start = self._demo + 1, now  # the recorder paused after a whole demo: the next
         self._last_call = now
