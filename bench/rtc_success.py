@@ -1,7 +1,7 @@
 """Success with RTC (LeRobot's ``RTCInferenceEngine``, chunks in a background thread) vs sync execution
 (``lerobot-eval``'s ``rollout``, ``select_action`` every step) on our sims, same checkpoints, same reset seeds.
 
-    python bench/rtc_success.py [--sims obstacle2d,pickplace,weights] [--episodes 20] [--seed 100000]
+    python bench/rtc_success.py [--sims obstacle2d,pickplace,weights,room] [--episodes 20] [--seed 100000]
 
 Sync: LeRobot's ``rollout`` (what ``lerobot-eval`` runs). RTC: LeRobot's own ``RTCInferenceEngine`` (the
 engine ``lerobot-rollout --inference.type=rtc`` builds) drives the sim as it drives a robot: the control loop
@@ -35,6 +35,7 @@ SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.envs.configs, default ch
     "obstacle2d": ("CNMPObstacle2DEnv", "outputs/main", "configs/cnmp_obstacle2d.json"),
     "pickplace": ("CNMPPickPlaceEnv", "outputs/pickplace", "configs/cnmp_pickplace.json"),
     "weights": ("CNMPWeightsEnv", "outputs/weights", "configs/cnmp_weights.json"),
+    "room": ("CNMPRoomEnv", "outputs/room", "configs/cnmp_room.json"),  # image-conditioned; start_end
 }
 
 
@@ -73,12 +74,18 @@ class _Robot:
         self.action_features = {n: float for n in action_names}
 
 
-def _flat(obs: dict) -> tuple[dict, dict]:
+def _flat(obs: dict, pixels: dict | None = None) -> tuple[dict, dict]:
     """A LeRobot observation batch of 1 ({"observation.state": [1, n], ...}) as a robot's flat {name: value}
-    dict and the matching hardware features (names ``<key>.<i>``)."""
+    dict and the matching hardware features (names ``<key>.<i>``); ``pixels`` (the env's raw HWC uint8
+    frames by camera) go in as a robot's cameras do (LeRobot's engine scales and permutes them)."""
     flat, hw = {}, {}
+    for cam, img in (pixels or {}).items():
+        flat[cam] = np.asarray(img)
+        hw[f"observation.images.{cam}"] = {"dtype": "image", "shape": tuple(flat[cam].shape),
+                                          "names": ["height", "width", "channels"]}
     for key, x in obs.items():
-        if not key.startswith("observation.") or not isinstance(x, torch.Tensor):
+        if not key.startswith("observation.") or key.startswith("observation.images.") or \
+                not isinstance(x, torch.Tensor):
             continue
         v = x.reshape(-1).float().numpy()
         names = [f"{key}.{i}" for i in range(v.size)]
@@ -103,8 +110,10 @@ def run_rtc(policy, pre, post, sim: str, episodes: int, seed: int, chunk: int, h
     env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
     env_pre, _ = make_env_pre_post_processors(cfg, policy.config)  # as lerobot-eval applies it
 
-    def observe(o):
-        return _flat(env_pre(preprocess_observation({k: v[None] for k, v in o.items()})))[0]
+    def observe(o, features: bool = False):
+        batched = {k: ({n: v[None] for n, v in x.items()} if isinstance(x, dict) else x[None]) for k, x in o.items()}
+        out = _flat(env_pre(preprocess_observation(batched)), o.get("pixels"))
+        return out if features else out[0]
 
     fps = float(cfg.fps)
     policy.config.execution.n_action_steps = chunk
@@ -118,7 +127,7 @@ def run_rtc(policy, pre, post, sim: str, episodes: int, seed: int, chunk: int, h
 
     policy.predict_action_chunk = planner
     obs, _ = env.reset(seed=seed)
-    _, hw = _flat(env_pre(preprocess_observation({k: v[None] for k, v in obs.items()})))
+    _, hw = observe(obs, features=True)
     n_act = int(np.prod(env.action_space.shape))
     engine = RTCInferenceEngine(policy, pre, post, _Robot([f"a{i}" for i in range(n_act)]),
                                 RTCConfig(execution_horizon=horizon), hw, task="", fps=fps, device="cpu",
@@ -182,7 +191,7 @@ def demo_largest_step(sim: str, ckpt: Path) -> float | None:
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--sims", default="obstacle2d,pickplace,weights")
+    p.add_argument("--sims", default="obstacle2d,pickplace,weights,room")
     p.add_argument("--checkpoints", default="", help="sim=path,... overriding the defaults (outputs/<sim>/train/...)")
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=100000)
