@@ -305,6 +305,7 @@ class CNMPExecutor:
         self.policy = policy
         self._user: list[UserCondition] = []
         self._user_tensors: tuple | None = None
+        self._user_group: tuple | None = None  # (the _user_tensors it expands, n, the group of n envs)
         self._index_cache: dict = {}
         self._slots_cache: tuple | None = None
         self.reset()
@@ -406,13 +407,14 @@ class CNMPExecutor:
             mask = torch.from_numpy(np.stack([u.mask for u in self._user])).to(device)
             values = torch.where(mask > 0.5, norm.sm(torch.nan_to_num(raw)), torch.zeros_like(raw))
             self._user_tensors = (phase, values, mask, key)
-        phase, values, mask, _, *group = self._user_tensors
-        if not group or group[0] != n:  # the batch-sized group, kept while the conditions and n stay
+        cached = self._user_group  # the batch-sized group, kept while the conditions and n stay
+        if cached is None or cached[0] is not self._user_tensors or cached[1] != n:
+            phase, values, mask, _ = self._user_tensors
             k = phase.shape[0]
-            group = [n, (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
-                         torch.ones(n, k, dtype=torch.bool, device=device))]
-            self._user_tensors = (phase, values, mask, key, *group)
-        return group[1]
+            group = (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
+                     torch.ones(n, k, dtype=torch.bool, device=device))
+            self._user_group = cached = (self._user_tensors, n, group)
+        return cached[2]
 
     def condition_slots(self, batch: dict[str, Tensor]):
         """The ``environment_state`` slots as context points (phase, normalized values, mask, valid); an env
@@ -503,12 +505,7 @@ class CNMPExecutor:
         full = self.policy.normalizer.sm(out)
         if spec.tied:  # every SM dim is sensed
             return full
-        key = ("sensed mask", out.device)
-        if key not in self._index_cache:
-            mask = torch.zeros(spec.size, device=out.device)
-            mask[spec.sensed] = 1.0
-            self._index_cache[key] = mask
-        return full * self._index_cache[key]
+        return full * self.dims_mask(full[0], spec.sensed)
 
     def _identity(self, feature: str) -> bool:
         """Whether ``feature``'s dim k is SM dim k for every SM dim (a state that is the SM)."""
@@ -540,7 +537,7 @@ class CNMPExecutor:
             groups.append(user)
         if e.condition_on_start and need_state:
             groups.append(self._start_point(sensed))
-        static = self._static_points(groups)
+        static, static_covers_every_env = self._static_points(groups)
         dynamic = []
         if e.online_feedback and need_state:
             at = (phase - self.phase_step).clamp(min=0.0) if c.spec.tied else phase
@@ -557,7 +554,7 @@ class CNMPExecutor:
             )
         parts = ([static] if static is not None else []) + dynamic
         pha, val, msk, valid = (torch.cat(x, 1) if len(parts) > 1 else x[0] for x in zip(*parts, strict=True))
-        if not (static is not None and self._static_cache[2]) and not bool(valid.any(dim=1).all()):
+        if not static_covers_every_env and not bool(valid.any(dim=1).all()):
             raise ValueError("an env in the batch has no condition to condition on (empty context)")
         if not self.has_inputs:
             self.inputs, self.has_inputs = self.policy.episode_inputs(batch), True
@@ -577,17 +574,17 @@ class CNMPExecutor:
             self._start_cache = cached = (start, group)
         return cached[1]
 
-    def _static_points(self, groups: list[tuple]) -> tuple | None:
-        """The groups concatenated, rebuilt only when one of them is a new object (each group is itself cached
-        while its source is unchanged); None without groups."""
+    def _static_points(self, groups: list[tuple]) -> tuple[tuple | None, bool]:
+        """(the groups concatenated, whether every env has a valid point among them), rebuilt only when one of
+        the groups is a new object (each group is itself cached while its source is unchanged); (None, False)
+        without groups."""
         if not groups:
-            return None
+            return None, False
         cached = self._static_cache
         if cached is None or len(cached[0]) != len(groups) or any(a is not b for a, b in zip(cached[0], groups)):
             joined = tuple(torch.cat(x, 1) if len(groups) > 1 else x[0] for x in zip(*groups, strict=True))
-            every_env_has_one = bool(joined[3].any(dim=1).all())
-            self._static_cache = cached = (list(groups), joined, every_env_has_one)
-        return cached[1]
+            self._static_cache = cached = (list(groups), joined, bool(joined[3].any(dim=1).all()))
+        return cached[1], cached[2]
 
     def predict(self, context: Context, queries: Tensor) -> tuple[Tensor, Tensor]:
         """(μ, σ) of the SM at ``queries`` [B, M] given ``context`` (normalized units), [B, M, D] each. The one

@@ -512,12 +512,14 @@ class SMNormalizer(nn.Module):
         self.register_buffer("sm_std", torch.full((sm_dim,), float("nan")))
         self.register_buffer("task_mean", torch.zeros(task_dim))
         self.register_buffer("task_std", torch.full((task_dim,), float("nan")))
+        self._ready_key: tuple | None = None  # the buffers' identity and versions that `ready` last read
+        self._ready = False
 
     @property
     def ready(self) -> bool:
         # checked every control step: the answer is kept until a buffer changes (in place, loaded or moved)
         key = (self.sm_std.data_ptr(), self.sm_std._version, self.task_std.data_ptr(), self.task_std._version)
-        if getattr(self, "_ready_key", None) != key:
+        if self._ready_key != key:
             self._ready = bool(torch.isfinite(self.sm_std).all()) and bool(torch.isfinite(self.task_std).all())
             self._ready_key = key
         return self._ready

@@ -52,9 +52,10 @@ class SO101ScriptedTeleopConfig(TeleoperatorConfig):
     A pause of more than ``new_demo_gap_s`` between two calls (the recorder saving an episode: 0.09-0.12 s
     measured with LeRobot 0.6.1 here) starts the next demo once the current one has played its whole cycle
     (at least 95 % of (episode_steps + reset_steps) / fps); an earlier pause (the loop stalled mid-episode)
-    does not. Demos thus stay aligned with the recorder's episodes. Goals: ``start_deg + reach_deg`` with shoulder_pan uniform in ``pan_range_deg``,
-    demo k's drawn from ``(seed, k)``. Record with ``--dataset.fps`` = fps, ``--dataset.episode_time_s`` ≈
-    episode_steps / fps and ``--dataset.reset_time_s`` ≈ reset_steps / fps."""
+    does not. Demos thus stay aligned with the recorder's episodes. Goals: ``start_deg + reach_deg`` with
+    shoulder_pan uniform in ``pan_range_deg``, demo k's drawn from ``(seed, k)``. Record with
+    ``--dataset.fps`` = fps, ``--dataset.episode_time_s`` ≈ episode_steps / fps and ``--dataset.reset_time_s``
+    ≈ reset_steps / fps."""
 
     episode_steps: int = 45
     reset_steps: int = 15
