@@ -543,10 +543,9 @@ def report_plot(recs: list[dict], path: Path) -> Path:
     fig.suptitle("success vs demonstrations (50 episodes, seeds 100000..; equal training wall time per cell)",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, path, dpi=120)
 
 
 def report(out: Path, plot: Path) -> str:

@@ -110,10 +110,9 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
             ax.axvspan(k, k + 1, color="0.85", lw=0)
     fig.suptitle("held episode, online feedback: the phase stalls while the body is held (gray)")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, out, dpi=110)
 
 
 def main() -> dict:

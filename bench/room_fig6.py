@@ -87,10 +87,9 @@ def plot(results: dict, out: Path) -> Path:
             ax.set_yticks([])
     axes[0, 0].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, out, dpi=110)
 
 
 def main() -> dict:

@@ -185,11 +185,9 @@ def plot(x, demos, modes, sets, cnmp, promp, path) -> Path:
     np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=8)
     fig.suptitle("Multimodal sines: demos by mode, predictions (mean ± 2σ) given the circled conditions")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_mixture(x, demos, modes, sets, mixture, path) -> Path:
@@ -199,7 +197,7 @@ def plot_mixture(x, demos, modes, sets, mixture, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lerobot_cnmp.plot import plot_experts
+    from lerobot_cnmp.plot import plot_experts, save_figure
 
     fig, axes = plt.subplots(1, len(sets), figsize=(4 * len(sets), 3.4), sharey=True)
     for ax, conds in zip(np.atleast_1d(axes), sets, strict=False):
@@ -212,11 +210,7 @@ def plot_mixture(x, demos, modes, sets, mixture, path) -> Path:
     np.atleast_1d(axes)[0].set_ylabel("y")
     fig.suptitle("Mixture CNMP on the sines: each expert's prediction, opacity and width by its gate probability")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 if __name__ == "__main__":

@@ -86,10 +86,9 @@ def plot_fig8(model, demos, gammas, phases, path: Path) -> Path:
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("Pick and place: demos (gray), ground truth (dashed), CNMP prediction ± 2σ")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, path, dpi=110)
 
 
 def main() -> dict:

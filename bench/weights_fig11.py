@@ -103,10 +103,9 @@ def plot(log: dict, out: Path, title: str) -> Path:
     axp.set_title("phase (stalls while redirected) and predicted end")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    from lerobot_cnmp.plot import save_figure
+
+    return save_figure(fig, out, dpi=110)
 
 
 def moments_of(log: dict) -> dict:

@@ -62,11 +62,19 @@ def plot_conditioned_xy(
             if c == 0:
                 ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120)
+    return save_figure(fig, out, dpi=120)
+
+
+def save_figure(fig, path, dpi: int = 110) -> Path:
+    """Write ``fig`` to ``path`` (its folder made if missing), close it and return the path: the tail every
+    figure of the package and of ``bench/`` shares."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
-    return out
+    return path
 
 
 def plot_experts(ax, x: np.ndarray, means: np.ndarray, stds: np.ndarray, probs: np.ndarray, dim: int = 0,
