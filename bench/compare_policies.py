@@ -28,7 +28,8 @@ hard-coded: every figure is read from the CLIs' outputs.
 
 Methods and their configs (no images anywhere: ``observation.state`` + ``observation.environment_state``):
 
-- ``cnmp``: the project's configs (``configs/cnmp_obstacle2d.json``, ``configs/cnmp_metaworld_reach.json``).
+- ``cnmp``: the project's configs (``configs/cnmp_obstacle2d.json``, ``configs/cnmp_metaworld_reach.json``,
+  ``configs/cnmp_so101.json``).
 - ``act``: ``configs/act_cpu_<task>.json``: LeRobot's ACT shrunk for CPU: dim_model 128, 4 heads,
   dim_feedforward 512, 2 encoder layers, 1 decoder layer, no VAE (``use_vae=false``), no vision backbone
   (none is built without image features), chunk_size = n_action_steps = 20, lr 1e-4, batch 32; 0.67 M
@@ -50,8 +51,9 @@ Training budget rule (``BUDGET_RULE``): the same training wall time for every me
 training loop per cell on this 2-core CPU (one thread), converted once into a fixed number of steps per
 method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps (2026-12-02, shared
 machine: CNMP ~100 steps/s at batch 8 × 8 draws; ACT 7.4 steps/s and Diffusion 4.5 steps/s at batch 32,
-LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``. CNMP's 9000 is
-its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides it; the cell's JSON
+LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``, except where a
+task's entry sets its own (``cnmp_so101``'s CNMP is twice as wide, 4500 steps). CNMP's 9000 is
+its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides both; the cell's JSON
 records the steps used, the rule, the process wall time and the training loop's own time (``train_loop_s``,
 LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thousand samples per demo): the
 table says what each method reaches in ~2 min of CPU, not at its plateau.
@@ -87,7 +89,8 @@ STEPS = {"cnmp": 9000, "act": 900, "diffusion": 600, "promp": 0}
 BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of training loop per cell on a 2-core CPU "
                "(1 thread), converted once into fixed steps per method from the throughput measured on "
                "cnmp_obstacle2d with 5 demos (CNMP ~100 steps/s at batch 8 x 8 draws, ACT 7.4 and Diffusion 4.5 "
-               f"steps/s at batch 32): {STEPS}; kept for every task and number of demos")
+               f"steps/s at batch 32): {STEPS}; kept for every task and number of demos, except cnmp_so101's CNMP "
+               "(256 wide, ~2x the cost per step): 4500")
 
 METHODS = ("cnmp", "act", "diffusion", "promp")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
@@ -112,6 +115,15 @@ TASKS = {
                     "diffusion": "configs/diffusion_cpu_metaworld_reach.json"},
         # ACT / Diffusion read γ as observation.environment_state: a renamed copy (see the docstring)
         "env_state_copy": {"act", "diffusion"},
+    },
+    "cnmp_so101": {  # the third-party SO-101 pick and place (extra so101); γ is its own environment_state
+        "dataset": "datasets/cnmp_so101",
+        "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],
+        "configs": {"cnmp": "configs/cnmp_so101.json", "act": "configs/act_cpu_so101.json",
+                    "diffusion": "configs/diffusion_cpu_so101.json"},
+        # its CNMP is 256 wide (3 x 256 encoder and decoder): a step costs ~2x the 128-wide one's, so half the
+        # steps keep the ~2 min budget (the cell's train_loop_s records what it took)
+        "steps": {"cnmp": 4500},
     },
 }
 
@@ -425,12 +437,13 @@ def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
 
 
 def run(args) -> int:
-    steps = dict(STEPS)
+    steps, explicit = dict(STEPS), set()  # --steps overrides a task's own steps too
     for s in args.steps or []:
         m, _, v = s.partition("=")
         if m not in METHODS or not v.isdigit():
             raise SystemExit(f"--steps takes METHOD=N with METHOD in {METHODS}, got {s!r}")
         steps[m] = int(v)
+        explicit.add(m)
     failed = []
     for task in args.tasks:
         for n in args.demos:
@@ -439,10 +452,11 @@ def run(args) -> int:
                 if not should_run(path, args.force):
                     print(f"skip {task} {method} {n} demos: {path} exists (--force reruns it)", flush=True)
                     continue
-                print(f"run  {task} {method} {n} demos ({steps[method]} steps)", flush=True)
+                n_steps = steps[method] if method in explicit else TASKS[task].get("steps", {}).get(method, steps[method])
+                print(f"run  {task} {method} {n} demos ({n_steps} steps)", flush=True)
                 t0 = time.perf_counter()
                 try:
-                    rec = run_cell(task, method, n, out=args.out, steps=steps[method], n_episodes=args.n_episodes,
+                    rec = run_cell(task, method, n, out=args.out, steps=n_steps, n_episodes=args.n_episodes,
                                    batch_size=args.batch_size)
                 except (Exception, SystemExit) as e:  # noqa: BLE001 - recorded in the cell's file; the run ends non-zero
                     partial = e.args[1] if isinstance(e, CellError) and len(e.args) > 1 else {}

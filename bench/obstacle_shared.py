@@ -17,8 +17,10 @@ CNMP runs as ``lerobot-eval`` runs it (``select_action`` with the config's onlin
 stop). ProMP (``movement_primitives``, 31 RBFs per dim) is conditioned on the episode's conditions and its
 mean is commanded open loop on the demos' schedule (step k -> phase k/199, then the goal). Reported per
 choice, over the executed runs: collision-free % (no contact with the obstacle during the 300 steps) and
-success % (the env's rule: goal, conditions, no contact), and the collision-free % of each method's
-predicted mean (the plan before execution). Last line: one JSON object (``checkpoint`` names the CNMP's).
+success % (the env's rule: goal, conditions, no contact), the collision-free % of each method's
+predicted mean (the plan before execution), and the share of executed runs that pass over / under the
+obstacle (which mode was chosen). A mixture checkpoint (``--policy.n_experts=K``) runs with its own
+``expert_selection``: ``sample`` draws the mode from the gate at the first step. Last line: one JSON object (``checkpoint`` names the CNMP's).
 """
 
 from __future__ import annotations
@@ -47,12 +49,21 @@ def clear_of_obstacle(path: np.ndarray) -> bool:
     return bool((np.linalg.norm(path - OBSTACLE_CENTER, axis=1) - OBSTACLE_RADIUS - AGENT_RADIUS).min() > 0)
 
 
+def mode_of(path: np.ndarray) -> str:
+    """``"over"`` or ``"under"``: the side of the obstacle the path passes, read where it crosses the obstacle's
+    x (the point of the path nearest to that x)."""
+    from lerobot_cnmp.envs.obstacle2d import OBSTACLE_CENTER
+
+    k = int(np.argmin(np.abs(path[:, 0] - OBSTACLE_CENTER[0])))
+    return "over" if path[k, 1] > OBSTACLE_CENTER[1] else "under"
+
+
 def run_cnmp(policy, pre, post, env, seed: int) -> dict:
     import torch
 
     obs, _ = env.reset(seed=seed)
     policy.reset()
-    plan, success = None, False
+    plan, success, path = None, False, [obs["agent_pos"].copy()]
     for _ in range(STEPS):
         batch = policy_batch(pre, obs)
         with torch.no_grad():
@@ -60,18 +71,22 @@ def run_cnmp(policy, pre, post, env, seed: int) -> dict:
         if plan is None:
             plan = predict_sm(policy, pre, post, batch, 0.0, np.linspace(0.0, 1.0, DEMO_STEPS))[0]
         obs, _, _, _, info = env.step(post(action)[0].numpy())
+        path.append(obs["agent_pos"].copy())
         success |= bool(info["is_success"])
-    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(plan)}
+    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(plan),
+            "mode": mode_of(np.array(path))}
 
 
 def run_promp(promp, env, seed: int) -> dict:
-    env.reset(seed=seed)
+    obs, _ = env.reset(seed=seed)
     mean, _ = promp.predict(np.linspace(0.0, 1.0, DEMO_STEPS), list(env.unwrapped.conditions))
-    success = False
+    success, path = False, [obs["agent_pos"].copy()]
     for k in range(STEPS):
-        _, _, _, _, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+        obs, _, _, _, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+        path.append(obs["agent_pos"].copy())
         success |= bool(info["is_success"])
-    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(mean)}
+    return {"success": success, "contact": bool(info["contact"]), "plan_clear": clear_of_obstacle(mean),
+            "mode": mode_of(np.array(path))}
 
 
 def main() -> dict:
@@ -93,7 +108,10 @@ def main() -> dict:
     policy.eval()
     promp = ProMPBaseline().fit(load_demos(DATASET)["demos"])
     res: dict = {"checkpoint": provenance(ckpt), "episodes": args.episodes, "seed": args.seed}
-    print(f"{'conditions':<18}{'method':<7}{'exec. collision-free %':>24}{'exec. success %':>17}{'plan collision-free %':>23}")
+    res["cnmp_n_experts"] = policy.config.n_experts
+    res["cnmp_expert_selection"] = policy.config.expert_selection
+    print(f"{'conditions':<18}{'method':<7}{'exec. collision-free %':>24}{'exec. success %':>17}{'plan collision-free %':>23}"
+          f"{'exec. over / under %':>22}")
     for choice in CHOICES:
         env = Obstacle2DEnv(conditions=choice, family="shared", render_mode=None, terminate_on_success=False)
         for name, run in (("cnmp", lambda s: run_cnmp(policy, pre, post, env, s)), ("promp", lambda s: run_promp(promp, env, s))):
@@ -104,7 +122,9 @@ def main() -> dict:
             res[f"shared_{choice}_collision_free_{name}"] = round(free, 1)
             res[f"shared_{choice}_success_{name}"] = round(succ, 1)
             res[f"shared_{choice}_plan_collision_free_{name}"] = round(plan, 1)
-            print(f"{choice:<18}{name:<7}{free:>24.1f}{succ:>17.1f}{plan:>23.1f}")
+            over = 100.0 * np.mean([r["mode"] == "over" for r in runs])
+            res[f"shared_{choice}_mode_over_{name}"] = round(over, 1)
+            print(f"{choice:<18}{name:<7}{free:>24.1f}{succ:>17.1f}{plan:>23.1f}{f'{over:.0f} / {100 - over:.0f}':>22}")
         env.close()
     print(json.dumps(res))
     return res

@@ -80,3 +80,15 @@ def test_provenance_of_a_lerobot_train_checkpoint(tmp_path):
     assert len(p["weights_sha256"]) == 16
     (ckpt / "train_config.json").write_text(json.dumps({**cfg, "seed": 7}))  # no committed config matches
     assert "no committed config matches" in provenance(ckpt)["training_command"]
+
+
+def test_mode_of_reads_the_side_of_the_obstacle_where_the_path_crosses_it():
+    from obstacle_shared import mode_of
+
+    x = np.linspace(0.0, 1.0, 101)
+    bump = 0.3 * np.sin(np.pi * x)
+    over, under = np.stack([x, bump], 1), np.stack([x, -bump], 1)
+    assert mode_of(over) == "over" and mode_of(under) == "under"
+    # the ends do not decide: a path that starts and ends above the obstacle's centre line but dips under it
+    dip = np.stack([x, 0.05 - 0.3 * np.sin(np.pi * x)], 1)
+    assert mode_of(dip) == "under"
