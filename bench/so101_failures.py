@@ -1,0 +1,135 @@
+"""Why SO-101 pick and place episodes fail: where the gripper closed, relative to the block, in each episode.
+
+    python bench/so101_failures.py [--checkpoint CKPT | --train] [--episodes 50] [--seed 100000]
+
+Runs the CNMP on ``cnmp/SO101PickPlace-v0`` (the third-party plugin's env behind ``--env.type=cnmp_so101``;
+extra ``so101``) one episode at a time, reset seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them,
+each observation through the policy's processors as ``lerobot-eval`` does. Per episode it records the step at
+which the policy first commands the jaw closed (``grasp`` < 0.5) and, at that step, the end effector's offset
+from the block centre (``agent_pos`` dims 11-13 minus the block's position in ``environment_state``), the
+block's highest lift and whether the episode succeeded. The same offsets in the dataset's demos (their
+first closing frame) are the reference: the plugin's controller closes at one offset, to about a millimetre.
+
+Classes of a failure: ``closed high`` (the jaw closed more than 2 cm above the block centre, the demos close
+at ~1.3 cm, and the block was never lifted), ``dropped`` (lifted, not placed), ``other``. Last line: one JSON
+object (``checkpoint`` names the checkpoint).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, provenance  # noqa: E402
+
+CONFIG = REPO / "configs" / "cnmp_so101.json"
+DATASET = REPO / "datasets" / "cnmp_so101"
+CHECKPOINT = REPO / "outputs" / "so101" / "train" / "checkpoints" / "last" / "pretrained_model"
+EE = slice(11, 14)  # agent_pos: end-effector x, y, z
+GRASP = 3  # action: jaw command, 1 open, 0 closed
+HIGH_M = 0.02
+MAX_STEPS = 300
+
+
+def demo_offsets(root: Path) -> np.ndarray:
+    """[episodes, 3] end-effector minus block centre at each demo's first closing frame."""
+    import pandas as pd
+
+    df = pd.concat([pd.read_parquet(f) for f in sorted((root / "data").glob("*/*.parquet"))])
+    out = []
+    for _, g in df.groupby("episode_index"):
+        act, state = np.stack(g["action"].values), np.stack(g["observation.state"].values)
+        env = np.stack(g["observation.environment_state"].values)
+        closed = np.flatnonzero(act[:, GRASP] < 0.5)
+        if closed.size:
+            k = int(closed[0])
+            out.append(state[k, EE] - env[k, :3])
+    return np.array(out, dtype=float)
+
+
+def run_episode(policy, pre, post, env, seed: int) -> dict:
+    import torch
+
+    obs, _ = env.reset(seed=seed)
+    policy.reset()
+    z0 = float(obs["environment_state"][2])
+    close_step, offset, lift, success = None, None, 0.0, False
+    for k in range(MAX_STEPS):
+        batch = policy_batch(pre, obs)
+        with torch.no_grad():
+            action = post(policy.select_action(batch))[0].numpy()
+        if close_step is None and action[GRASP] < 0.5:
+            close_step, offset = k, (obs["agent_pos"][EE] - obs["environment_state"][:3]).astype(float)
+        obs, _, term, trunc, info = env.step(action.astype(np.float32))
+        lift = max(lift, float(obs["environment_state"][2]) - z0)
+        success |= bool(info.get("is_success"))
+        if term or trunc:
+            break
+    if success:
+        kind = "success"
+    elif lift < 0.01 and offset is not None and offset[2] > HIGH_M:
+        kind = "closed high"
+    elif lift >= 0.01:
+        kind = "dropped"
+    else:
+        kind = "other"
+    return {"seed": seed, "kind": kind, "close_step": close_step, "lift_m": round(lift, 4),
+            "offset_m": None if offset is None else np.round(offset, 4).tolist()}
+
+
+def main() -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on datasets/cnmp_so101")
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--seed", type=int, default=100000)
+    args = p.parse_args()
+    if args.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {args.episodes}")
+
+    import gymnasium as gym
+
+    import lerobot_cnmp.envs  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
+    from lerobot_cnmp.api import load_pretrained
+
+    ckpt = checkpoint_from_args(args, "cnmp_so101", config_path=CONFIG)
+    policy, pre, post = load_pretrained(ckpt)
+    policy.eval()
+    env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)
+    demos = demo_offsets(DATASET)
+    print(f"demos' offset at closing (x, y, z, m): mean {np.round(demos.mean(0), 4).tolist()}, "
+          f"std {np.round(demos.std(0), 4).tolist()} over {len(demos)} demos")
+    print(f"{'seed':>7} {'result':<12}{'close step':>11}  {'offset x, y, z (m)':<26}{'lift (m)':>9}")
+    runs = []
+    for i in range(args.episodes):
+        r = run_episode(policy, pre, post, env, args.seed + i)
+        runs.append(r)
+        off = "-" if r["offset_m"] is None else ", ".join(f"{v:+.3f}" for v in r["offset_m"])
+        print(f"{r['seed']:>7} {r['kind']:<12}{str(r['close_step']):>11}  {off:<26}{r['lift_m']:>9.3f}", flush=True)
+    env.close()
+    kinds = {k: sum(r["kind"] == k for r in runs) for k in ("success", "closed high", "dropped", "other")}
+
+    def mean_offset(sel):
+        offs = [r["offset_m"] for r in runs if sel(r) and r["offset_m"] is not None]
+        return np.round(np.mean(offs, 0), 4).tolist() if offs else None
+
+    res = {"checkpoint": provenance(ckpt), "episodes": args.episodes, "seed": args.seed,
+           "pc_success": round(100.0 * kinds["success"] / args.episodes, 1), "counts": kinds,
+           "demo_offset_mean_m": np.round(demos.mean(0), 4).tolist(),
+           "demo_offset_std_m": np.round(demos.std(0), 4).tolist(),
+           "offset_mean_success_m": mean_offset(lambda r: r["kind"] == "success"),
+           "offset_mean_closed_high_m": mean_offset(lambda r: r["kind"] == "closed high"), "runs": runs}
+    print(f"success {kinds['success']} / {args.episodes}; failures: closed high {kinds['closed high']}, "
+          f"dropped {kinds['dropped']}, other {kinds['other']}; mean offset at closing: successes "
+          f"{res['offset_mean_success_m']}, closed high {res['offset_mean_closed_high_m']} (demos "
+          f"{res['demo_offset_mean_m']})")
+    print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()
