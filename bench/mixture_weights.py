@@ -1,7 +1,8 @@
 """The weight switch as a change of mode: a mixture CNMP's gate on ``cnmp_weights`` before the grasp and
 after the lift (issue 17).
 
-    python bench/mixture_weights.py [--experts 4] [--mixture_nll likelihood] [--steps N] [--save DIR]
+    python bench/mixture_weights.py [--experts 4] [--mixture_nll likelihood] [--gate_entropy_coef C]
+                                    [--gate_commit always|where_decided] [--steps N] [--save DIR]
 
 Fits the config's CNMP (``configs/cnmp_weights.json``: model, sampling, learning rate, steps, batch size)
 with ``n_experts`` decoders on the 20 demos of ``datasets/cnmp_weights`` with the in-memory API. Then, for
@@ -45,6 +46,8 @@ def main() -> dict:
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided"),
+                   help="which contexts the gate-entropy term asks to commit (default: the config's)")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", default=None, help="write the fitted checkpoint here")
@@ -62,6 +65,8 @@ def main() -> dict:
     model.overrides.update(n_experts=args.experts, mixture_nll=args.mixture_nll)
     if args.gate_entropy_coef is not None:
         model.overrides["gate_entropy_coef"] = args.gate_entropy_coef
+    if args.gate_commit is not None:
+        model.overrides["gate_commit"] = args.gate_commit
     t0 = time.perf_counter()
     model.fit(data["demos"], task_params=data["task_params"], steps=args.steps or cfg["steps"],
               batch_size=cfg["batch_size"], seed=args.seed, progress=False)
@@ -93,7 +98,8 @@ def main() -> dict:
     zone_expert = {z: sorted({r["expert"] for r in rows if r["truth"] == z}) for z in range(4)}
     res = {
         "mixture_experts": args.experts, "mixture_nll": args.mixture_nll,
-        "gate_entropy_coef": model.config.gate_entropy_coef, "fit_s": round(fit_s, 1),
+        "gate_entropy_coef": model.config.gate_entropy_coef, "gate_commit": model.config.gate_commit,
+        "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
         "gate_before_grasp_mean": [round(float(v), 3) for v in before.mean(0)],
         "gate_before_grasp_max_abs_dev_from_uniform": round(float(np.abs(before - 1 / args.experts).max()), 3),

@@ -76,6 +76,10 @@ class CNMPConfig(PreTrainedConfig):
             the likelihood that collapses ambiguous contexts onto one averaging expert (weights task: 0.89 on
             one expert before the grasp), 0 leaves informative contexts uncommitted (after the lift max π
             0.54-0.85): 0.2 is between (README "Mixture decoder").
+        gate_commit: Which contexts the gate-entropy term asks to commit (``CNMP.mixture_loss``): ``"always"``
+            (every context, CNEP's) or ``"where_decided"`` (each episode's term weighted by 1 - H(π)/log K,
+            without gradient: a context the gate spreads over modes is left a posterior, one it leans on is
+            pushed to one expert). On the weights task neither meets both gate bars (README "Mixture decoder").
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
             batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
         expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
@@ -163,6 +167,7 @@ class CNMPConfig(PreTrainedConfig):
     gate_entropy_coef: float = 0.2
     batch_entropy_coef: float = 0.88
     mixture_nll: str = "likelihood"
+    gate_commit: str = "always"
     expert_selection: str = "most_probable"
     mode_switch_margin: float = 0.3
 
@@ -254,6 +259,8 @@ class CNMPConfig(PreTrainedConfig):
         if self.gate_entropy_coef < 0 or self.batch_entropy_coef < 0:
             raise ValueError(f"gate_entropy_coef and batch_entropy_coef must be >= 0, got {self.gate_entropy_coef}, "
                              f"{self.batch_entropy_coef}")
+        if self.gate_commit not in ("always", "where_decided"):
+            raise ValueError(f"gate_commit must be 'always' or 'where_decided', got {self.gate_commit!r}")
         if self.mixture_nll not in ("cnep", "likelihood"):
             raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):

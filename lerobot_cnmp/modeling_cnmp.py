@@ -224,6 +224,7 @@ class CNMP(nn.Module):
         batch_entropy_coef: float = 0.88,
         mixture_nll: str = "likelihood",
         nll_beta: float = 0.0,
+        gate_commit: str = "always",
     ):
         super().__init__()
         if int(n_experts) != n_experts or n_experts < 1:
@@ -237,6 +238,9 @@ class CNMP(nn.Module):
                              f"n_experts={n_experts}, nll_beta={nll_beta}")
         self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
         self.mixture_nll = mixture_nll
+        if gate_commit not in GATE_COMMIT:
+            raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {gate_commit!r}")
+        self.gate_commit = gate_commit
         self.nll_beta = nll_beta
         self.register_buffer("dim_weights", None, persistent=False)  # [D] NLL weights; None: all 1 (Eq. 1)
         self.register_buffer(
@@ -372,8 +376,14 @@ class CNMP(nn.Module):
         the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
 
             L = NLL_mix
-                + gate_entropy_coef  · mean_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
-                - batch_entropy_coef · H(mean_b π_b) / log K  -- high batch entropy: use every expert
+                + gate_entropy_coef  · mean_b c_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
+                - batch_entropy_coef · H(mean_b π_b) / log K      -- high batch entropy: use every expert
+
+        with c_b = 1 (``gate_commit="always"``) or c_b = 1 - H(π_b) / log K, without gradient
+        (``"where_decided"``): the commitment is asked in proportion to how decided the gate already is, so a
+        context the gate spreads over several modes (≈ 1/4 each for four zones) is left to the likelihood,
+        which keeps π a posterior there, while a context the gate leans on keeps being pushed to one expert
+        (the likelihood alone is indifferent between experts that fit a decided context equally well).
 
         with NLL_mix, by ``mixture_nll``:
 
@@ -401,11 +411,16 @@ class CNMP(nn.Module):
             n = n_queries.to(nll_bk.dtype).clamp(min=1.0)
             log_lik = torch.logsumexp(probs.clamp(min=1e-12).log() - nll_bk * n[:, None], dim=-1)  # log Σ π Π N
             nll = -(log_lik / n).mean()
-        ind_entropy = entropy(probs).mean() / log_k
+        h = entropy(probs)
+        commit = (1.0 - h / log_k).clamp(min=0.0).detach() if self.gate_commit == "where_decided" else None
+        ind_entropy = (h.mean() if commit is None else (commit * h).mean()) / log_k
         batch_entropy = entropy(probs.mean(dim=0)) / log_k
         loss = nll + self.gate_entropy_coef * ind_entropy - self.batch_entropy_coef * batch_entropy
-        return loss, {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
-                      "batch_entropy": batch_entropy.item()}
+        info = {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
+                "batch_entropy": batch_entropy.item()}
+        if commit is not None:
+            info["gate_commit_weight"] = commit.mean().item()
+        return loss, info
 
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
@@ -422,6 +437,9 @@ class CNMP(nn.Module):
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
         return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
+
+
+GATE_COMMIT = ("always", "where_decided")
 
 
 def entropy(p: Tensor) -> Tensor:
@@ -597,6 +615,7 @@ class CNMPPolicy(PreTrainedPolicy):
             batch_entropy_coef=config.batch_entropy_coef,
             mixture_nll=config.mixture_nll,
             nll_beta=config.nll_beta,
+            gate_commit=config.gate_commit,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec

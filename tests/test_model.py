@@ -451,6 +451,38 @@ def test_mixture_loss_forms(mixture_net, form):
     assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
 
 
+def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_its_gate_is(mixture_net):
+    """``where_decided``: the per-episode entropy term is weighted by 1 - H(π_b)/log K (no gradient through the
+    weight): a uniform gate gets no commitment pressure, a one-hot one the full term; ``always``: weight 1."""
+    nll_bk = torch.zeros(3, 3)
+    probs = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [0.6, 0.3, 0.1], [0.98, 0.01, 0.01]], requires_grad=True)
+    h = -(probs * probs.log()).sum(-1) / np.log(3)
+    default = mixture_net.gate_commit
+    assert default == CNMPConfig.gate_commit == "always"
+    try:
+        _, always = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
+        mixture_net.gate_commit = "where_decided"
+        loss, weighted = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
+    finally:
+        mixture_net.gate_commit = default
+    assert always["gate_entropy"] == pytest.approx(h.mean().item(), rel=1e-5)
+    assert weighted["gate_entropy"] == pytest.approx(((1 - h) * h).mean().item(), rel=1e-5)
+    assert weighted["gate_commit_weight"] == pytest.approx((1 - h).mean().item(), rel=1e-5)
+    # the uniform episode (weight 0) gets no gradient from the entropy term: its gradient is the one without it
+    (g_decided,) = torch.autograd.grad(loss, probs)
+    coef = mixture_net.gate_entropy_coef
+    try:
+        mixture_net.gate_entropy_coef = 0.0
+        no_term, _ = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
+    finally:
+        mixture_net.gate_entropy_coef = coef
+    (g_none,) = torch.autograd.grad(no_term, probs)
+    torch.testing.assert_close(g_decided[0], g_none[0])
+    assert not torch.allclose(g_decided[2], g_none[2])
+    with pytest.raises(ValueError, match="gate_commit"):
+        CNMP(sm_dim=2, n_experts=2, gate_commit="sometimes")
+
+
 @pytest.mark.parametrize("k", [0, -2, 1.5])
 def test_bad_number_of_experts_is_a_clear_error(k):
     with pytest.raises(ValueError, match="n_experts"):
@@ -461,7 +493,7 @@ def test_bad_number_of_experts_is_a_clear_error(k):
 
 @pytest.mark.parametrize("field, value", [("gate_entropy_coef", -0.1), ("batch_entropy_coef", -1.0),
                                           ("expert_selection", "random"), ("mode_switch_margin", 1.0),
-                                          ("mixture_nll", "mse")])
+                                          ("mixture_nll", "mse"), ("gate_commit", "sometimes")])
 def test_bad_mixture_settings(field, value):
     with pytest.raises(ValueError, match=field):
         CNMPConfig(**{field: value})
