@@ -521,6 +521,31 @@ def report_table(recs: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def summary_table(recs: list[dict]) -> str:
+    """One row per task and number of demos, one column per method: pc_success (training loop seconds);
+    "err" for a failed cell, "–" for a cell not run."""
+    ok = [r for r in recs if "n_demos" in r and "task" in r]
+    methods = [m for m in METHODS if any(r["method"] == m for r in ok)]
+    tasks = {t: i for i, t in enumerate(TASKS)}
+    keys = sorted({(r["task"], r["n_demos"]) for r in ok}, key=lambda k: (tasks.get(k[0], 99), k[0], k[1]))
+    cell = {(r["task"], r["n_demos"], r["method"]): r for r in ok}
+    lines = ["| task | demos | " + " | ".join(m + (" (in-process)" if m == "promp" else "") for m in methods) + " |",
+             "|---|---:|" + "---:|" * len(methods)]
+    for task, n in keys:
+        vals = []
+        for m in methods:
+            r = cell.get((task, n, m))
+            if r is None:
+                vals.append("–")
+            elif r.get("status") != "ok":
+                vals.append("err")
+            else:
+                loop = r.get("train_loop_s") if r.get("train_loop_s") is not None else r.get("train_wall_s")
+                vals.append(f"{r['pc_success']:.0f}" + ("" if loop is None else f" ({loop:.0f} s)"))
+        lines.append(f"| {task} | {n} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
 def report_plot(recs: list[dict], path: Path) -> Path:
     """Success vs number of demos, one line per method, one panel per task (ok cells only)."""
     import matplotlib
@@ -567,7 +592,8 @@ def report(out: Path, plot: Path) -> str:
     if not recs:
         raise SystemExit(f"no result files under {out}")
     table = report_table(recs)
-    text = (f"# Policy comparison\n\nBudget rule: {recs[0].get('budget_rule', BUDGET_RULE)}\n\n{table}\n\n"
+    text = (f"# Policy comparison\n\nBudget rule: {recs[0].get('budget_rule', BUDGET_RULE)}\n\n"
+            f"pc_success (training loop s):\n\n{summary_table(recs)}\n\nEvery cell:\n\n{table}\n\n"
             f"Seeds: lerobot-eval --seed={SEED}; commands in each cell's JSON under {out}.\n")
     (out / "report.md").write_text(text)
     report_plot(recs, plot)

@@ -68,6 +68,19 @@ def test_run_skips_done_cells_and_records_failures(tmp_path, monkeypatch):
     assert len(calls) == 4
 
 
+def test_a_tasks_own_steps_and_the_override(tmp_path, monkeypatch):
+    """cnmp_so101's CNMP (twice as wide) gets the task's 4500 steps; --steps overrides a task's steps too."""
+    seen = []
+    monkeypatch.setattr(cp, "run_cell", lambda task, method, n, steps, **kw: seen.append((method, steps))
+                        or _ok(task, method, n, 1.0))
+    base = ["--tasks", "cnmp_so101", "--methods", "cnmp", "act", "--demos", "10", "--out", str(tmp_path)]
+    assert cp.main(base) == 0
+    assert seen == [("cnmp", 4500), ("act", cp.STEPS["act"])]
+    seen.clear()
+    assert cp.main(base + ["--force", "--steps", "cnmp=100"]) == 0
+    assert seen == [("cnmp", 100), ("act", cp.STEPS["act"])]
+
+
 def test_steps_override_is_checked(tmp_path):
     with pytest.raises(SystemExit):
         cp.main(["--tasks", "cnmp_obstacle2d", "--steps", "nope=3", "--out", str(tmp_path)])
@@ -82,7 +95,12 @@ def test_report_table_and_plot(tmp_path):
                       "error": "CellError: lerobot-train failed (exit 1)\nTraceback ..."})
     plot = tmp_path / "plot.png"
     text = cp.report(tmp_path, plot)
-    rows = [line for line in text.splitlines() if line.startswith("| cnmp_")]
+    summary, every = text.split("Every cell:")
+    # the summary: one row per task and demos, a column per method with pc_success (training seconds)
+    assert "| task | demos | cnmp | act | diffusion |" in summary
+    assert "| cnmp_obstacle2d | 10 | 100 (100 s) | 44 (100 s) | – |" in summary
+    assert "| cnmp_metaworld_reach | 5 | 70 (100 s) | – | err |" in summary
+    rows = [line for line in every.splitlines() if line.startswith("| cnmp_")]
     assert len(rows) == 6
     assert rows[0].startswith("| cnmp_obstacle2d | cnmp | 5 | 90.0 | 50 |")  # the tasks in TASKS' order
     assert rows[4].startswith("| cnmp_metaworld_reach | cnmp | 5 | 70.0 | 50 |")
