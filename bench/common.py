@@ -96,6 +96,36 @@ def _matching_config(train_cfg: dict) -> Path | None:
     return None
 
 
+# CNMP settings that change what is trained; a run whose values differ from its committed config's (or, where
+# the config does not set them, from CNMPConfig's defaults) was given them on the command line
+_TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll",
+                    "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "expert_selection", "nll_beta",
+                    "commanded_loss_weight", "feedback_draw_weight", "draws_per_sample", "n_max_context",
+                    "m_max_targets", "context_in_targets", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr",
+                    "scheduler_decay_lr", "state_tracks_action")
+
+
+def _policy_overrides(train_cfg: dict, committed: dict) -> dict:
+    """``--policy.*`` values of a ``lerobot-train`` run that differ from the committed config it matches."""
+    got, want = train_cfg.get("policy") or {}, committed.get("policy") or {}
+    if got.get("type") != "cnmp":
+        return {k: v for k, v in got.items() if k in want and v != want[k] and k not in ("device", "pretrained_path")}
+    import dataclasses
+
+    from lerobot_cnmp.configuration_cnmp import CNMPConfig
+
+    defaults = {f.name: f.default for f in dataclasses.fields(CNMPConfig) if f.default is not dataclasses.MISSING}
+    out = {}
+    for k in _TRAINING_FIELDS:
+        if k not in got:
+            continue
+        ref = want.get(k, defaults.get(k))
+        norm = (lambda v: list(v) if isinstance(v, tuple) else v)  # noqa: E731
+        if norm(got[k]) != norm(ref):
+            out[k] = got[k]
+    return out
+
+
 def provenance(path: str | Path) -> dict:
     """Which checkpoint produced a bench's figures: its path, training step, training command and a hash of
     its weights (``model.safetensors``). For a ``lerobot-train`` checkpoint the step is read from
@@ -124,7 +154,9 @@ def provenance(path: str | Path) -> dict:
         out["train_config"] = str(train_file)
         match = _matching_config(tc)
         if match is not None:
-            out["training_command"] = (f"lerobot-train --config_path={match.relative_to(REPO)} "
+            flags = "".join(f" --policy.{k}={json.dumps(v, separators=(',', ':'))}"
+                            for k, v in _policy_overrides(tc, json.loads(match.read_text())).items())
+            out["training_command"] = (f"lerobot-train --config_path={match.relative_to(REPO)}{flags} "
                                        f"--output_dir={tc.get('output_dir')}")
         else:
             out["training_command"] = (f"lerobot-train (no committed config matches; see {train_file}: dataset "

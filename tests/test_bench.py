@@ -78,6 +78,13 @@ def test_provenance_of_a_lerobot_train_checkpoint(tmp_path):
     assert p["step"] == 1234 and p["trained_by"] == "lerobot-train"
     assert p["training_command"] == "lerobot-train --config_path=configs/cnmp_obstacle2d.json --output_dir=outputs/x/train"
     assert len(p["weights_sha256"]) == 16
+    # flags given on the command line on top of the config are part of the command
+    over = {**cfg, "output_dir": "outputs/x/train",
+            "policy": {**cfg["policy"], "n_experts": 2, "encoder_layers": [256, 256], "device": "cpu"}}
+    (ckpt / "train_config.json").write_text(json.dumps(over))
+    assert provenance(ckpt)["training_command"] == (
+        "lerobot-train --config_path=configs/cnmp_obstacle2d.json --policy.encoder_layers=[256,256] "
+        "--policy.n_experts=2 --output_dir=outputs/x/train")
     (ckpt / "train_config.json").write_text(json.dumps({**cfg, "seed": 7}))  # no committed config matches
     assert "no committed config matches" in provenance(ckpt)["training_command"]
 
