@@ -224,6 +224,30 @@ def add_checkpoint_args(parser, default: Path, what: str = "a CNMP checkpoint") 
                              "(without it a missing checkpoint is an error)")
 
 
+def add_episode_args(parser, seed: int, episodes: int = 50) -> None:
+    """``--episodes`` (>= 1, checked by :func:`parse_episode_args`) and ``--seed`` (the first reset seed)."""
+    parser.add_argument("--episodes", type=int, default=episodes)
+    parser.add_argument("--seed", type=int, default=seed)
+
+
+def parse_episode_args(parser):
+    args = parser.parse_args()
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    return args
+
+
+def load_checkpoint_policy(args, name: str, config_path: Path):
+    """(checkpoint, policy in eval mode, preprocessor, postprocessor) of a bench's ``--checkpoint`` /
+    ``--train`` (:func:`checkpoint_from_args`)."""
+    from lerobot_cnmp.api import load_pretrained
+
+    ckpt = checkpoint_from_args(args, name, config_path=config_path)
+    policy, pre, post = load_pretrained(ckpt)
+    policy.eval()
+    return ckpt, policy, pre, post
+
+
 def fitted_dir(name: str) -> Path:
     """Where ``--train`` saves the checkpoint it fits for ``name`` (kept, so the JSON's path stays valid)."""
     return REPO / "outputs" / "bench" / "fitted" / name

@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, predict_sm, provenance  # noqa: E402
+from common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,  # noqa: E402
+                    policy_batch, predict_sm, provenance)
 
 CONFIG = REPO / "configs" / "cnmp_obstacle2d_shared.json"
 DATASET = REPO / "datasets" / "cnmp_obstacle2d_shared"
@@ -92,20 +93,14 @@ def run_promp(promp, env, seed: int) -> dict:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on datasets/cnmp_obstacle2d_shared")
-    p.add_argument("--episodes", type=int, default=50)
-    p.add_argument("--seed", type=int, default=900000)
-    args = p.parse_args()
-    if args.episodes < 1:
-        p.error(f"--episodes must be >= 1, got {args.episodes}")
+    add_episode_args(p, seed=900000)
+    args = parse_episode_args(p)
 
-    from lerobot_cnmp.api import load_pretrained
     from lerobot_cnmp.baselines import ProMPBaseline
     from lerobot_cnmp.data import load_demos
     from lerobot_cnmp.envs.obstacle2d import Obstacle2DEnv
 
-    ckpt = checkpoint_from_args(args, "cnmp_obstacle2d_shared", config_path=CONFIG)
-    policy, pre, post = load_pretrained(ckpt)
-    policy.eval()
+    ckpt, policy, pre, post = load_checkpoint_policy(args, "cnmp_obstacle2d_shared", CONFIG)
     promp = ProMPBaseline().fit(load_demos(DATASET)["demos"])
     res: dict = {"checkpoint": provenance(ckpt), "episodes": args.episodes, "seed": args.seed}
     res["cnmp_n_experts"] = policy.config.n_experts

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, provenance  # noqa: E402
+from common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,  # noqa: E402
+                    policy_batch, provenance)
 
 CONFIG = REPO / "configs" / "cnmp_so101.json"
 DATASET = REPO / "datasets" / "cnmp_so101"
@@ -85,20 +86,14 @@ def run_episode(policy, pre, post, env, seed: int) -> dict:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on datasets/cnmp_so101")
-    p.add_argument("--episodes", type=int, default=50)
-    p.add_argument("--seed", type=int, default=100000)
-    args = p.parse_args()
-    if args.episodes < 1:
-        p.error(f"--episodes must be >= 1, got {args.episodes}")
+    add_episode_args(p, seed=100000)
+    args = parse_episode_args(p)
 
     import gymnasium as gym
 
     import lerobot_cnmp.envs  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
-    from lerobot_cnmp.api import load_pretrained
 
-    ckpt = checkpoint_from_args(args, "cnmp_so101", config_path=CONFIG)
-    policy, pre, post = load_pretrained(ckpt)
-    policy.eval()
+    ckpt, policy, pre, post = load_checkpoint_policy(args, "cnmp_so101", CONFIG)
     env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)
     demos = demo_offsets(DATASET)
     print(f"demos' offset at closing (x, y, z, m): mean {np.round(demos.mean(0), 4).tolist()}, "
