@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import os
 import shutil
 import sys
@@ -113,8 +114,10 @@ def parse_action_noise(text: str | float | list | None, action_dim: int) -> np.n
 
 
 def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str,
-             action_noise: str | None = None, max_failed: int = 0) -> str:
+             action_noise: str | None = None, max_failed: int = 0, demo_length: int | None = None) -> str:
     cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
+    if demo_length is not None and demo_length != SIMS[sim].demo_length:
+        cmd += f" --demo_length {demo_length}"
     if action_noise is not None:
         cmd += f" --action_noise {action_noise}"
     if max_failed:
@@ -248,6 +251,7 @@ def record_dataset(
     progress: bool = True,
     action_noise: str | float | list | None = None,
     max_failed: int = 0,
+    demo_length: int | None = None,
 ) -> Path:
     """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
 
@@ -267,6 +271,8 @@ def record_dataset(
             so the demos show recoveries from deviations. None: none. Noise draws are seeded by ``seed``.
         max_failed: drop up to this many demos that fail (e.g. under ``action_noise``) and go on with the next
             seed; the card lists the dropped seeds. 0: the first failed demo stops the recording.
+        demo_length: frames per demo (the sim's ``SimSpec.demo_length`` when None), e.g. for a MetaWorld task
+            whose expert needs more than the default 150 steps (at most the env's own episode limit).
 
     Raises:
         ValueError: unknown sim, ``n_episodes < 1``.
@@ -276,6 +282,10 @@ def record_dataset(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     spec = _get_spec(sim)
+    if demo_length is not None:
+        if int(demo_length) != demo_length or demo_length < 2:
+            raise ValueError(f"demo_length must be an integer >= 2, got {demo_length}")
+        spec = dataclasses.replace(spec, demo_length=int(demo_length))
     n_episodes = spec.default_episodes if n_episodes is None else int(n_episodes)
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
@@ -384,7 +394,8 @@ def record_dataset(
             labels=labels,
             kinds=kinds,
             command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
-                             None if noise is None else ",".join(f"{v:g}" for v in noise), max_failed),
+                             None if noise is None else ",".join(f"{v:g}" for v in noise), max_failed,
+                             spec.demo_length),
             elapsed_s=elapsed_s,
             action_noise=noise,
             seeds=seeds,
@@ -445,6 +456,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--action_noise", default=None,
                         help="DART execution noise: std of Gaussian noise added to the executed action, one value or "
                              "one per action dim ('0.3' or '0.3,0.3,0.3,0'); the recorded action stays the expert's")
+    parser.add_argument("--demo_length", type=int, default=None,
+                        help="frames per demo (default: the sim's; e.g. 300 for a MetaWorld task whose expert needs more "
+                             "than 150 steps)")
     parser.add_argument("--max_failed", type=int, default=0,
                         help="drop up to this many failed demos (e.g. under --action_noise) and record the next seed "
                              "instead; the card lists them (default 0: a failed demo stops the recording)")
@@ -477,6 +491,7 @@ def main(argv: list[str] | None = None) -> int:
             conditions=args.conditions,
             action_noise=args.action_noise,
             max_failed=args.max_failed,
+            demo_length=args.demo_length,
         )
     except (FileExistsError, DemoFailedError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

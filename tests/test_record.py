@@ -249,3 +249,14 @@ def test_max_failed_drops_failed_demos_and_records_the_next_seed(tmp_path, monke
     assert not (tmp_path / "ds2").exists()
     with pytest.raises(ValueError, match="max_failed must be >= 0"):
         record_mod.record_dataset(SIM, tmp_path / "ds3", n_episodes=1, max_failed=-1, progress=False)
+
+
+def test_demo_length_sets_the_frames_per_demo_and_is_in_the_regenerate_command(tmp_path):
+    default = SIMS[SIM].demo_length
+    root = record_mod.record_dataset(SIM, tmp_path / "long", n_episodes=1, seed=0, progress=False,
+                                     demo_length=default + 30)
+    assert len(_parquet(root)) == default + 30
+    assert f"--demo_length {default + 30}" in (root / "README.md").read_text()
+    with pytest.raises(ValueError, match="demo_length"):
+        record_mod.record_dataset(SIM, tmp_path / "bad", n_episodes=1, demo_length=1)
+    assert not (tmp_path / "bad").exists()
