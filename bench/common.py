@@ -115,15 +115,10 @@ def _policy_overrides(train_cfg: dict, committed: dict) -> dict:
     from lerobot_cnmp.configuration_cnmp import CNMPConfig
 
     defaults = {f.name: f.default for f in dataclasses.fields(CNMPConfig) if f.default is not dataclasses.MISSING}
-    out = {}
-    for k in _TRAINING_FIELDS:
-        if k not in got:
-            continue
-        ref = want.get(k, defaults.get(k))
-        norm = (lambda v: list(v) if isinstance(v, tuple) else v)  # noqa: E731
-        if norm(got[k]) != norm(ref):
-            out[k] = got[k]
-    return out
+    def norm(v):  # a dataclass default tuple reads back from JSON as a list
+        return list(v) if isinstance(v, tuple) else v
+
+    return {k: got[k] for k in _TRAINING_FIELDS if k in got and norm(got[k]) != norm(want.get(k, defaults.get(k)))}
 
 
 def provenance(path: str | Path) -> dict:

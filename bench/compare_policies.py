@@ -524,11 +524,11 @@ def report_table(recs: list[dict]) -> str:
 def summary_table(recs: list[dict]) -> str:
     """One row per task and number of demos, one column per method: pc_success (training loop seconds);
     "err" for a failed cell, "–" for a cell not run."""
-    ok = [r for r in recs if "n_demos" in r and "task" in r]
-    methods = [m for m in METHODS if any(r["method"] == m for r in ok)]
+    cells = [r for r in recs if "n_demos" in r and "task" in r]  # ok and error cells
+    methods = [m for m in METHODS if any(r["method"] == m for r in cells)]
     tasks = {t: i for i, t in enumerate(TASKS)}
-    keys = sorted({(r["task"], r["n_demos"]) for r in ok}, key=lambda k: (tasks.get(k[0], 99), k[0], k[1]))
-    cell = {(r["task"], r["n_demos"], r["method"]): r for r in ok}
+    keys = sorted({(r["task"], r["n_demos"]) for r in cells}, key=lambda k: (tasks.get(k[0], 99), k[0], k[1]))
+    cell = {(r["task"], r["n_demos"], r["method"]): r for r in cells}
     lines = ["| task | demos | " + " | ".join(m + (" (in-process)" if m == "promp" else "") for m in methods) + " |",
              "|---|---:|" + "---:|" * len(methods)]
     for task, n in keys:

@@ -29,6 +29,9 @@ class CNMPAdamConfig(AdamConfig):
     fused: bool = True
 
 
+GATE_COMMIT = ("always", "where_decided")  # CNMPConfig.gate_commit (CNMP.mixture_loss)
+
+
 @PreTrainedConfig.register_subclass("cnmp")
 @dataclass
 class CNMPConfig(PreTrainedConfig):
@@ -259,8 +262,8 @@ class CNMPConfig(PreTrainedConfig):
         if self.gate_entropy_coef < 0 or self.batch_entropy_coef < 0:
             raise ValueError(f"gate_entropy_coef and batch_entropy_coef must be >= 0, got {self.gate_entropy_coef}, "
                              f"{self.batch_entropy_coef}")
-        if self.gate_commit not in ("always", "where_decided"):
-            raise ValueError(f"gate_commit must be 'always' or 'where_decided', got {self.gate_commit!r}")
+        if self.gate_commit not in GATE_COMMIT:
+            raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {self.gate_commit!r}")
         if self.mixture_nll not in ("cnep", "likelihood"):
             raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):

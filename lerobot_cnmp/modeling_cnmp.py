@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot_cnmp.bank import EpisodeBank
-from lerobot_cnmp.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, CNMPConfig
 from lerobot_cnmp.executor import CNMPExecutor, check_finite
 
 
@@ -437,9 +437,6 @@ class CNMP(nn.Module):
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
         return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
-
-
-GATE_COMMIT = ("always", "where_decided")
 
 
 def entropy(p: Tensor) -> Tensor:
