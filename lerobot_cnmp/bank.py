@@ -133,6 +133,8 @@ class EpisodeBank:
             if not np.isfinite(gamma).all():
                 e = ids[np.argwhere(~np.isfinite(gamma))[0][0]]
                 raise ValueError(f"task features {task_cols} hold NaN or inf at the first frame of episode {int(e)}")
+            for i, g in spec.origins:  # task frames: the sensed dim minus the episode's γ dim
+                values[:, i] -= gamma[rep, g]
         return cls(values.astype(np.float32), phase, starts, lengths, ids, gamma, durations)
 
     # ---- statistics ------------------------------------------------------------------------------------

@@ -349,6 +349,7 @@ class CNMPExecutor:
         self.reference_std: Tensor | None = None  # σ of target / expected
         self.error: Tensor | None = None  # previous PD error e, for the D term
         self.inputs: Tensor | None = None  # γ and image embeddings read at the first step
+        self.origin: Tensor | None = None  # raw γ of the task-frame dims at the first step (SM layout)
         self.has_inputs = False
         self.held_steps: Tensor | None = None  # consecutive steps the phase has been held, per env
         self.timed_out = False  # the phase-stop timeout fired in this episode (warning logged)
@@ -502,6 +503,13 @@ class CNMPExecutor:
             out[:, idx] = vals
         if out is None:
             return None
+        if spec.origins:  # task frames: minus the γ this episode started with
+            if self.origin is None or self.origin.shape[0] != out.shape[0]:
+                gamma = self.policy.task_params(batch)
+                sm_idx, g_idx = zip(*spec.origins, strict=True)
+                self.origin = torch.zeros_like(out)
+                self.origin[:, list(sm_idx)] = gamma[:, list(g_idx)].to(out)
+            out = out - self.origin
         full = self.policy.normalizer.sm(out)
         if spec.tied:  # every SM dim is sensed
             return full

@@ -787,12 +787,10 @@ class CNMPPolicy(PreTrainedPolicy):
             self._numpy_model, self._numpy_key = NumpyCNMP(self.model), key
         return self._numpy_model
 
-    def episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """The episode-level input of E and Q read at the first step of the episode: γ and the embedding of
-        each image feature, [B, episode_dim]; None when there is neither."""
-        c = self.config
+    def task_params(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """γ read from the observation (raw units), [B, G]; None when the CNMP has no task features."""
         parts = []
-        for key, size in c.spec.task_features:
+        for key, size in self.config.spec.task_features:
             if key not in batch:
                 raise KeyError(f"this CNMP is conditioned on task parameters: the observation needs {key!r}; it has "
                                f"{sorted(batch)}")
@@ -802,8 +800,14 @@ class CNMPPolicy(PreTrainedPolicy):
                 raise ValueError(f"task feature {key!r} has {g.shape[-1]} values, the CNMP was trained with {size}")
             check_finite(key, g)
             parts.append(g.float())
-        if parts:
-            parts = [self.normalizer.task(torch.cat(parts, dim=-1))]
+        return torch.cat(parts, dim=-1) if parts else None
+
+    def episode_inputs(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """The episode-level input of E and Q read at the first step of the episode: γ and the embedding of
+        each image feature, [B, episode_dim]; None when there is neither."""
+        c = self.config
+        gamma = self.task_params(batch)
+        parts = [] if gamma is None else [self.normalizer.task(gamma)]
         for key in c.image_keys:
             if key not in batch:
                 raise KeyError(f"this CNMP is conditioned on the image {key!r}; the observation has {sorted(batch)}")

@@ -23,6 +23,14 @@ Two layouts:
 A declaration (``CNMPConfig.sm``) lists entries ``"feature"`` (all its dims) or ``"feature:dim"`` (one dim,
 by the dataset's dim name or by index). It resolves to the canonical ``"feature:index"`` form, saved in the
 checkpoint's config, so execution needs no dataset.
+
+**Task frames.** A sensed entry ``"feature:dim@task_feature:dim"`` is that dim *minus* one dim of γ: the
+sensed value expressed relative to a task parameter read at the episode's first frame, e.g.
+``"observation.state:ee_x@observation.environment_state:block_x"`` = the end effector's x relative to the
+block's start (the object-centred frames of task-parameterized movement primitives). The model then learns
+"reach 2.7 cm left of the block" as one number instead of a function of two inputs. Training subtracts γ
+from the dataset's column, execution from the live reading, with the γ the episode started with. A dim may
+appear both plain and in one or more frames; action dims cannot have a frame (they are output as they are).
 """
 
 from __future__ import annotations
@@ -32,6 +40,9 @@ from dataclasses import dataclass
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 TASK_PARAMS = "observation.task_params"
+
+FRAME_SEP = "@"
+"""Separates an SM entry from the γ dim whose frame it is expressed in: ``"feature:dim@task_feature:dim"``."""
 
 CONDITION_NAME_PREFIX = "c0_present"
 """The first dim name of an ``environment_state`` written in the CNMP condition layout by our recorder."""
@@ -87,10 +98,18 @@ class SMDim:
     feature: str
     index: int
     name: str
+    origin: tuple[str, int] | None = None  # (γ feature, its dim): the SM dim is feature[index] - γ[origin]
+    origin_name: str | None = None
 
     @property
     def key(self) -> str:
-        return f"{self.feature}:{self.index}"
+        base = f"{self.feature}:{self.index}"
+        return base if self.origin is None else f"{base}{FRAME_SEP}{self.origin[0]}:{self.origin[1]}"
+
+    @property
+    def label(self) -> str:
+        """The dim's name; in a task frame ``name-origin_name`` (e.g. ``ee_x-block_x``)."""
+        return self.name if self.origin is None else f"{self.name}-{self.origin_name}"
 
 
 @dataclass(frozen=True)
@@ -122,6 +141,15 @@ class SMSpec:
         return [i for i, d in enumerate(self.dims) if d.feature != ACTION]
 
     @property
+    def origins(self) -> list[tuple[int, int]]:
+        """(SM index, index into the concatenated γ vector) of every dim in a task frame."""
+        offsets, at = {}, 0
+        for key, size in self.task_features:
+            offsets[key] = at
+            at += size
+        return [(i, offsets[d.origin[0]] + d.origin[1]) for i, d in enumerate(self.dims) if d.origin is not None]
+
+    @property
     def sensed_features(self) -> dict[str, list[tuple[int, int]]]:
         """Per observation feature, the (SM index, feature index) pairs it provides at execution."""
         out: dict[str, list[tuple[int, int]]] = {}
@@ -137,9 +165,9 @@ class SMSpec:
     def names(self) -> list[str]:
         counts: dict[str, int] = {}
         for d in self.dims:
-            counts[d.name] = counts.get(d.name, 0) + 1
+            counts[d.label] = counts.get(d.label, 0) + 1
         short = {OBS_STATE: "state", ACTION: "action"}
-        return [d.name if counts[d.name] == 1 else f"{short.get(d.feature, d.feature)}.{d.name}" for d in self.dims]
+        return [d.label if counts[d.label] == 1 else f"{short.get(d.feature, d.feature)}.{d.label}" for d in self.dims]
 
 
 def default_sm(ds_features: dict[str, dict], tied: bool) -> list[str]:
@@ -170,26 +198,40 @@ def resolve(sm: tuple[str, ...] | None, task_features: tuple[str, ...] | None, t
         raise ValueError(f"{ACTION!r} must be a flat numeric vector, got {ds_features[ACTION]}")
     entries = list(sm) if sm else default_sm(numeric, tied)
     dims: list[SMDim] = []
-    for entry in entries:
-        feature, _, dim = str(entry).partition(":")
+
+    def picks_of(entry: str, part: str, what: str) -> tuple[str, list[int], list[str]]:
+        feature, _, dim = part.strip().partition(":")
         if feature not in ds_features:
-            raise ValueError(f"SM entry {entry!r}: the dataset has no feature {feature!r}; it has {sorted(ds_features)}")
+            raise ValueError(f"{what} {entry!r}: the dataset has no feature {feature!r}; it has {sorted(ds_features)}")
         if feature not in numeric:
-            raise ValueError(f"SM entry {entry!r}: feature {feature!r} is not a flat numeric vector "
+            raise ValueError(f"{what} {entry!r}: feature {feature!r} is not a flat numeric vector "
                              f"({ds_features[feature].get('dtype')}, shape {ds_features[feature].get('shape')})")
         names = _dim_names(numeric[feature])
         if not dim:
-            picks = list(range(len(names)))
-        elif dim in names:
-            picks = [names.index(dim)]
-        elif dim.lstrip("-").isdigit() and 0 <= int(dim) < len(names):
-            picks = [int(dim)]
-        else:
-            raise ValueError(f"SM entry {entry!r}: feature {feature!r} has no dim {dim!r}; its dims are {names}")
+            return feature, list(range(len(names))), names
+        if dim in names:
+            return feature, [names.index(dim)], names
+        if dim.lstrip("-").isdigit() and 0 <= int(dim) < len(names):
+            return feature, [int(dim)], names
+        raise ValueError(f"{what} {entry!r}: feature {feature!r} has no dim {dim!r}; its dims are {names}")
+
+    for entry in entries:
+        head, sep, frame = str(entry).partition(FRAME_SEP)
+        feature, picks, names = picks_of(entry, head, "SM entry")
+        origin = origin_name = None
+        if sep:
+            if feature == ACTION or tied:
+                raise ValueError(f"SM entry {entry!r}: only sensed dims can be expressed in a task frame "
+                                 f"(the {ACTION!r} dims are output as they are)")
+            o_feature, o_picks, o_names = picks_of(entry, frame, "task frame of SM entry")
+            if len(o_picks) != 1 or len(picks) != 1:
+                raise ValueError(f"SM entry {entry!r}: a task frame pairs one dim with one dim of γ "
+                                 f"(\"feature:dim{FRAME_SEP}task_feature:dim\")")
+            origin, origin_name = (o_feature, o_picks[0]), o_names[o_picks[0]]
         for k in picks:
-            d = SMDim(feature, k, names[k])
+            d = SMDim(feature, k, names[k], origin, origin_name)
             if d in dims:
-                raise ValueError(f"SM entry {entry!r} repeats the dim {feature}:{names[k]}")
+                raise ValueError(f"SM entry {entry!r} repeats the dim {d.feature}:{d.label}")
             dims.append(d)
     action_dim = int(tuple(numeric[ACTION]["shape"])[0])
     got = {d.index for d in dims if d.feature == ACTION}
@@ -224,4 +266,8 @@ def resolve(sm: tuple[str, ...] | None, task_features: tuple[str, ...] | None, t
         if key in sm_features:
             raise ValueError(f"feature {key!r} is declared both as SM and as task parameters γ")
         task_sizes.append((key, int(tuple(numeric[key]["shape"])[0])))
+    for d in dims:
+        if d.origin is not None and d.origin[0] not in tasks:
+            raise ValueError(f"SM dim {d.key!r} is expressed in the frame of {d.origin[0]!r}, which is not among the "
+                             f"task features γ {tasks}: declare it in task_features")
     return SMSpec(tuple(dims), tied, tuple(task_sizes), action_dim)

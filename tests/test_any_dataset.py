@@ -238,6 +238,11 @@ def _tree(root: Path) -> dict[str, tuple[int, int]]:
         ({"feedback_dims": (6,)}, "must be sensed SM dims"),  # SM dim 6 = action:0, commanded
         ({"tracking_dims": (12,)}, "must be sensed SM dims"),
         ({"state_tracks_action": True}, "state_tracks_action=True"),  # 6 state dims cannot measure 7 actions
+        ({"sm": ("observation.state", "action:0@observation.environment_state:goal_x", "action")}, "task frame"),
+        ({"sm": ("observation.state:0@observation.environment_state:nope", "action")}, "'nope'"),
+        ({"sm": ("observation.state@observation.environment_state:goal_x", "action")}, "one dim with one dim"),
+        ({"sm": ("observation.state:0@observation.environment_state:goal_x", "action"), "task_features": ()},
+         "not among the task features"),
     ],
 )
 def test_bad_declarations_are_clear_errors(root, meta, overrides, message):
@@ -405,6 +410,38 @@ def test_sm_declared_by_dim_names_resolves_to_canonical_indices(root, meta):
     torch.testing.assert_close(sensed[0, 7:], expected)
     assert bool((sensed[0, :7] == 0).all())
     assert policy.select_action(obs).shape == (1, 7)
+
+
+def test_task_frame_dims_subtract_the_episode_gamma_in_training_and_execution(root, meta):
+    """``"observation.state:0@observation.environment_state:goal_x"``: the bank holds the state dim minus the
+    episode's first-frame γ dim; execution subtracts the γ read at the episode's first step, and keeps it for
+    the episode even when the live γ changes."""
+    entry = f"{OBS_STATE}:shoulder_pan.pos@{OBS_ENV_STATE}:goal_x"
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), sm=(OBS_STATE, entry, ACTION))
+    policy = make_policy(cfg, ds_meta=meta)
+    assert cfg.sm[6] == f"{OBS_STATE}:0@{OBS_ENV_STATE}:0" and cfg.sm_names[6] == "shoulder_pan.pos-goal_x"
+    assert cfg.spec.sensed == list(range(7)) and cfg.spec.commanded == list(range(7, 14))
+    c = _columns(root)
+    order = np.lexsort((c["frame_index"], c["episode_index"]))
+    ep = c["episode_index"][order]
+    first = {int(e): c[OBS_ENV_STATE][order][np.flatnonzero(ep == e)[0], 0] for e in np.unique(ep)}
+    expect = c[OBS_STATE][order][:, 0].astype(np.float64) - np.array([first[int(e)] for e in ep])
+    np.testing.assert_allclose(policy.bank.values[:, 6].numpy(), expect, rtol=1e-6, atol=1e-6)  # float32 storage
+    np.testing.assert_array_equal(policy.bank.values[:, :6].numpy(), c[OBS_STATE][order])
+
+    policy.eval()
+    policy.reset()
+    obs = _raw_obs(root)
+    norm = policy.normalizer
+    want = (obs[OBS_STATE][0, 0] - obs[OBS_ENV_STATE][0, 0] - norm.sm_mean[6]) / norm.sm_std[6]
+    torch.testing.assert_close(policy.executor.sensed_sm(obs)[0, 6], want)
+    policy.select_action(obs)
+    moved = {**obs, OBS_ENV_STATE: obs[OBS_ENV_STATE] + 1.0}  # γ is the episode's first reading
+    torch.testing.assert_close(policy.executor.sensed_sm(moved)[0, 6], want)
+    policy.reset()  # a new episode reads γ again
+    want2 = (obs[OBS_STATE][0, 0] - moved[OBS_ENV_STATE][0, 0] - norm.sm_mean[6]) / norm.sm_std[6]
+    torch.testing.assert_close(policy.executor.sensed_sm(moved)[0, 6], want2)
+    assert policy.select_action(moved).shape == (1, 7)
 
 
 # ---- training options for reactive demonstrators: execution-shaped draws, β-NLL --------------------------
