@@ -36,6 +36,7 @@ appear both plain and in one or more frames; action dims cannot have a frame (th
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
@@ -114,6 +115,8 @@ class SMDim:
 
 @dataclass(frozen=True)
 class SMSpec:
+    """A resolved SM: frozen, so the index lists derived from it (read on every control step) are computed once."""
+
     dims: tuple[SMDim, ...]
     tied: bool
     task_features: tuple[tuple[str, int], ...]  # (feature, size)
@@ -127,20 +130,20 @@ class SMSpec:
     def task_dim(self) -> int:
         return sum(n for _, n in self.task_features)
 
-    @property
+    @cached_property
     def commanded(self) -> list[int]:
         """SM indices of the action's dims, in the action's order."""
         by_index = {d.index: i for i, d in enumerate(self.dims) if d.feature == ACTION}
         return [by_index[k] for k in range(self.action_dim)]
 
-    @property
+    @cached_property
     def sensed(self) -> list[int]:
         """SM indices read from the live observation (tied: all, through ``observation.state``)."""
         if self.tied:
             return list(range(self.size))
         return [i for i, d in enumerate(self.dims) if d.feature != ACTION]
 
-    @property
+    @cached_property
     def origins(self) -> list[tuple[int, int]]:
         """(SM index, index into the concatenated γ vector) of every dim in a task frame."""
         offsets, at = {}, 0
@@ -149,7 +152,7 @@ class SMSpec:
             at += size
         return [(i, offsets[d.origin[0]] + d.origin[1]) for i, d in enumerate(self.dims) if d.origin is not None]
 
-    @property
+    @cached_property
     def sensed_features(self) -> dict[str, list[tuple[int, int]]]:
         """Per observation feature, the (SM index, feature index) pairs it provides at execution."""
         out: dict[str, list[tuple[int, int]]] = {}
