@@ -1,11 +1,13 @@
 """Training cost of the mixture decoder (issue 17): time to the single-decoder CNMP's validation NLL on the
 2D obstacle data.
 
-    python bench/mixture_cost.py [--experts 4] [--mixture_nll cnep] [--steps 3000] [--every 250]
+    python bench/mixture_cost.py [--experts 4] [--mixture_nll cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
+                                 [--steps 3000] [--every 250]
 
 Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
 ``configs/cnmp_obstacle2d.json`` on ``datasets/cnmp_obstacle2d`` with the in-memory API, same steps, batch
-and seed. Every ``--every`` steps each is scored on validation tasks that are not in the dataset (fresh tasks
+and seed (``--mixture_steps`` gives the mixture another number of steps, its cosine decay spread over them;
+``--gate_entropy_coef`` / ``--batch_entropy_coef`` its entropy weights instead of the config's defaults). Every ``--every`` steps each is scored on validation tasks that are not in the dataset (fresh tasks
 of the sim, both modes; as ``time_to_error.py``): given the start and one via point, the NLL of the task's
 true 200-step path under the predicted density, per point, in the data's units: -log N(y | μ, σ) for K = 1,
 -log Σ_k π_k N(y | μ_k, σ_k) for the mixture (the density its experts and gate predict). Reported: the
@@ -16,6 +18,7 @@ ratio (bar: <= 2). Last line: one JSON object.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -64,7 +67,11 @@ def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
+    p.add_argument("--gate_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
+    p.add_argument("--batch_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
     p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--mixture_steps", type=int, default=None,
+                   help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")
     p.add_argument("--every", type=int, default=250)
     p.add_argument("--validation", type=int, default=40, help="validation tasks")
     p.add_argument("--seed", type=int, default=0)
@@ -72,15 +79,18 @@ def main() -> dict:
 
     cfg = config(CONFIG)
     val = validation_set(args.validation, 500000)
+    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef") if getattr(args, k) is not None}
     curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed),
-              "mixture": run(cfg, args.steps, args.every, val, args.seed, n_experts=args.experts,
-                             mixture_nll=args.mixture_nll)}
+              "mixture": run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed, n_experts=args.experts,
+                             mixture_nll=args.mixture_nll, **coefs)}
     target = curves["cnmp"][-1][2]
     print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
     print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' NLL':>14}" for k in curves))
-    for row in zip(*curves.values(), strict=True):
-        print(f"{row[0][0]:>6}" + "".join(f"{s:>12.1f}{e:>14.3f}" for _, s, e in row))
-    res: dict = {"experts": args.experts, "mixture_nll": args.mixture_nll, "steps": args.steps,
+    for row in itertools.zip_longest(*curves.values()):
+        step = next(r[0] for r in row if r is not None)
+        print(f"{step:>6}" + "".join(" " * 26 if r is None else f"{r[1]:>12.1f}{r[2]:>14.3f}" for r in row))
+    res: dict = {"experts": args.experts, "mixture_nll": args.mixture_nll, **coefs, "steps": args.steps,
+                 "mixture_steps": args.mixture_steps or args.steps,
                  "target_validation_nll": round(target, 3)}
     for k, pts in curves.items():
         steps, seconds = first_below(pts, target)
