@@ -3,7 +3,8 @@
 One cell of the table = (task, method, number of demos N). For each cell this script:
 
 1. trains with stock ``lerobot-train`` on the first N episodes of the task's committed dataset
-   (LeRobot's own ``--dataset.episodes=[0,...,N-1]``: LeRobot's sampler then draws frames of those episodes
+   (LeRobot's own ``--dataset.episodes=[0,...,N-1]``; a task whose demos are recorded in a structured order
+   lists its own ``episode_order``, e.g. cnmp_pickplace's grid corners first: LeRobot's sampler then draws frames of those episodes
    only; the normalization statistics are the dataset's ``meta/stats.json``, i.e. of all its episodes, for
    every method alike: CNMP's in-memory bank computes its statistics over all episodes too, but draws its
    training episodes from the sampler's episode ids), with the method's committed config under ``configs/``;
@@ -29,7 +30,7 @@ hard-coded: every figure is read from the CLIs' outputs.
 Methods and their configs (no images anywhere: ``observation.state`` + ``observation.environment_state``):
 
 - ``cnmp``: the project's configs (``configs/cnmp_obstacle2d.json``, ``configs/cnmp_metaworld_reach.json``,
-  ``configs/cnmp_so101.json``).
+  ``configs/cnmp_so101.json``, ``configs/cnmp_pickplace.json``).
 - ``act``: ``configs/act_cpu_<task>.json``: LeRobot's ACT shrunk for CPU: dim_model 128, 4 heads,
   dim_feedforward 512, 2 encoder layers, 1 decoder layer, no VAE (``use_vae=false``), no vision backbone
   (none is built without image features), chunk_size = n_action_steps = 20, lr 1e-4, batch 32; 0.67 M
@@ -39,7 +40,8 @@ Methods and their configs (no images anywhere: ``observation.state`` + ``observa
   DDIM with 100 training timesteps and 10 inference steps, lr 3e-4 (100 warm-up steps, cosine), batch 32;
   1.11 M parameters on obstacle2d, 1.06 M on MetaWorld (the default down_dims are (512, 1024, 2048)).
 
-MetaWorld: the dataset stores γ (first frame's object and goal positions) as ``observation.task_params``,
+MetaWorld and cnmp_pickplace: the dataset stores γ (MetaWorld: the first frame's object and goal positions;
+pickplace: the object's position) as ``observation.task_params``,
 which ACT and Diffusion do not read (they take ``observation.state``, ``observation.environment_state`` and
 images). For them this script derives a copy of the dataset with that column renamed to
 ``observation.environment_state`` (LeRobot's ``dataset_tools.modify_features``; same values, same
@@ -52,7 +54,8 @@ training loop per cell on this 2-core CPU (one thread), converted once into a fi
 method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps (2026-12-02, shared
 machine: CNMP ~100 steps/s at batch 8 × 8 draws; ACT 7.4 steps/s and Diffusion 4.5 steps/s at batch 32,
 LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``, except where a
-task's entry sets its own (``cnmp_so101``'s CNMP is twice as wide, 4500 steps). CNMP's 9000 is
+task's entry sets its own (``cnmp_so101``'s CNMP is twice as wide, 4500 steps; ``cnmp_pickplace``'s CNMP
+keeps its committed config's 4000). CNMP's 9000 is
 its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides both; the cell's JSON
 records the steps used, the rule, the process wall time and the training loop's own time (``train_loop_s``,
 LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thousand samples per demo): the
@@ -90,7 +93,7 @@ BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of trai
                "(1 thread), converted once into fixed steps per method from the throughput measured on "
                "cnmp_obstacle2d with 5 demos (CNMP ~100 steps/s at batch 8 x 8 draws, ACT 7.4 and Diffusion 4.5 "
                f"steps/s at batch 32): {STEPS}; kept for every task and number of demos, except cnmp_so101's CNMP "
-               "(256 wide, ~2x the cost per step): 4500")
+               "(256 wide, ~2x the cost per step): 4500, and cnmp_pickplace's CNMP: its committed config's 4000")
 
 METHODS = ("cnmp", "act", "diffusion", "promp")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
@@ -125,7 +128,26 @@ TASKS = {
         # steps keep the ~2 min budget (the cell's train_loop_s records what it took)
         "steps": {"cnmp": 4500},
     },
+    "cnmp_pickplace": {  # the paper's Sec. IV-B: γ = the object's position, 8 demos on a 2 x 4 grid of γ
+        "dataset": "datasets/cnmp_pickplace",
+        "env": ["--env.type=cnmp_pickplace", "--env.render_mode=null"],
+        "configs": {"cnmp": "configs/cnmp_pickplace.json", "act": "configs/act_cpu_pickplace.json",
+                    "diffusion": "configs/diffusion_cpu_pickplace.json"},
+        "env_state_copy": {"act", "diffusion"},
+        "steps": {"cnmp": 4000},  # its committed config's steps (fewer than the 9000 of the budget)
+        # the grid's four corners first, then the four inner points: N = 5 covers the grid's extent
+        "episode_order": [0, 7, 3, 4, 1, 6, 2, 5],
+    },
 }
+# Not a cell: cnmp_weights. Its observation is observation.state alone (the class is in the sensed F/T, no γ),
+# and LeRobot 0.6.1's ACT and Diffusion refuse that ("You must provide at least one image or the environment
+# state among the inputs.", their validate_features).
+
+
+def episodes(task: str, n: int) -> list[int]:
+    """The dataset episodes of a task's N-demo cell: the first N of its ``episode_order`` (default 0..N-1)."""
+    order = TASKS[task].get("episode_order")
+    return list(range(n)) if order is None else list(order[:n])
 
 
 class CellError(RuntimeError):
@@ -225,7 +247,7 @@ def child_env() -> dict:
 
 def train_command(task: str, method: str, n: int, steps: int, out_dir: Path, dataset_root: Path | None) -> list[str]:
     cmd = [str(BIN / "lerobot-train"), f"--config_path={TASKS[task]['configs'][method]}", "--policy.device=cpu",
-           f"--dataset.episodes=[{','.join(str(i) for i in range(n))}]", f"--steps={steps}", f"--save_freq={steps}",
+           f"--dataset.episodes=[{','.join(str(i) for i in episodes(task, n))}]", f"--steps={steps}", f"--save_freq={steps}",
            f"--job_name={task}_{method}_{n}demos", f"--output_dir={out_dir}"]
     if dataset_root is not None:
         cmd.insert(2, f"--dataset.root={dataset_root.relative_to(REPO) if REPO in dataset_root.parents else dataset_root}")
@@ -321,7 +343,7 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     n_total = json.loads((REPO / TASKS[task]["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
     if n > n_total:
         raise CellError(f"{task} has {n_total} demos, {n} asked")
-    rec = {"task": task, "method": method, "n_demos": n, "episodes": list(range(n)), "steps": steps,
+    rec = {"task": task, "method": method, "n_demos": n, "episodes": episodes(task, n), "steps": steps,
            "budget_rule": BUDGET_RULE, "date": dt.datetime.now().isoformat(timespec="seconds"),
            "config": TASKS[task]["configs"][method], "host_cpus": os.cpu_count()}
     env = child_env()
@@ -377,7 +399,7 @@ def promp_cell(task: str, n: int, n_episodes: int) -> dict:
     from lerobot_cnmp.data import load_demos
 
     data = load_demos(REPO / TASKS[task]["dataset"])
-    order = np.argsort(data["episode_index"])[:n]
+    order = np.argsort(data["episode_index"])[episodes(task, n)] if n <= len(data["demos"]) else []
     if len(order) < n:
         raise CellError(f"{task} has {len(order)} demos, {n} asked")
     t0 = time.perf_counter()
@@ -419,7 +441,7 @@ def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
     part.unlink(missing_ok=True)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--promp_cell", task, str(n), str(part),
            f"--n_episodes={n_episodes}"]
-    rec = {"task": task, "method": "promp", "n_demos": n, "episodes": list(range(n)), "steps": 0,
+    rec = {"task": task, "method": "promp", "n_demos": n, "episodes": episodes(task, n), "steps": 0,
            "budget_rule": "ProMP is fitted in closed form (EM of movement_primitives), no training steps",
            "date": dt.datetime.now().isoformat(timespec="seconds"), "label": PROMP_LABEL,
            "eval_command": shlex.join(cmd), "train_command": None, "checkpoint": None, "host_cpus": os.cpu_count()}

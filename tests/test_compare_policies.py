@@ -134,6 +134,19 @@ def test_commands(tmp_path):
             assert (cp.REPO / config).is_file(), config
 
 
+def test_a_tasks_episode_order(tmp_path):
+    """cnmp_pickplace's cells take its grid's corners first; a task without an order takes 0..N-1; every order
+    is a permutation of its dataset's episodes."""
+    assert cp.episodes("cnmp_obstacle2d", 3) == [0, 1, 2]
+    assert cp.episodes("cnmp_pickplace", 5) == [0, 7, 3, 4, 1]
+    cmd = cp.train_command("cnmp_pickplace", "act", 5, 900, tmp_path / "train", None)
+    assert "--dataset.episodes=[0,7,3,4,1]" in cmd
+    for name, task in cp.TASKS.items():
+        if "episode_order" in task:
+            total = json.loads((cp.REPO / task["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
+            assert sorted(task["episode_order"]) == list(range(total)), name
+
+
 def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path):
     with pytest.raises(cp.CellError, match="ProMP is not set up"):
         cp.run_cell("cnmp_metaworld_reach", "promp", 5, out=tmp_path, steps=0, n_episodes=2, batch_size=1)
