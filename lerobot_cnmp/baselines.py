@@ -19,17 +19,28 @@ GRID_POINTS = 1001
 class ProMPBaseline:
     """Probabilistic Movement Primitive (Paraschos et al. 2013) from ``movement_primitives.promp``.
 
+    Task parameters γ (a contextual ProMP): ``fit(demos, task_params=...)`` also fits a joint Gaussian over
+    each demo's weights (the library's per-demo regression, ``ProMP.weights``) and its γ (standardized);
+    ``predict(..., task_params=γ)`` starts from the weight distribution conditioned on γ (the Gaussian's
+    conditional: mean ``μ_w + Σ_wγ (Σ_γγ + λI)⁻¹ (γ - μ_γ)``, covariance its Schur complement), then applies
+    the SM conditions as usual. With fewer demos than γ dims Σ_γγ is singular: the ridge λ keeps it solvable.
+
     Args:
         n_weights_per_dim: RBF weights per SM dimension (the paper's comparison used 31).
         condition_std: σ of a condition point (0 would make the Gaussian conditioning singular).
+        context_ridge: λ added to the standardized γ's covariance in the conditioning on γ.
     """
 
-    def __init__(self, n_weights_per_dim: int = 31, condition_std: float = 1e-3):
+    def __init__(self, n_weights_per_dim: int = 31, condition_std: float = 1e-3, context_ridge: float = 0.1):
+        if context_ridge <= 0:
+            raise ValueError(f"context_ridge must be > 0, got {context_ridge}")
         self.n_weights_per_dim = n_weights_per_dim
         self.condition_std = condition_std
+        self.context_ridge = context_ridge
         self.promp = None
+        self.context = None
 
-    def fit(self, demos) -> ProMPBaseline:
+    def fit(self, demos, task_params=None) -> ProMPBaseline:
         from movement_primitives.promp import ProMP
 
         values, valid, phase = pad_demos(demos)
@@ -39,12 +50,48 @@ class ProMPBaseline:
         ys = [values[i, valid[i]] for i in range(len(values))]
         self.promp.imitate(ts, ys)
         self.sm_dim = d
+        self.context = None
+        if task_params is not None:
+            gamma = np.asarray(task_params, dtype=float)
+            if gamma.ndim != 2 or len(gamma) != len(ys):
+                raise ValueError(f"task_params must be [n_demos, G] with one row per demo ({len(ys)}), "
+                                 f"got shape {gamma.shape}")
+            if not np.isfinite(gamma).all():
+                raise ValueError("task_params contain NaN or inf")
+            w = np.stack([self.promp.weights(t, y) for t, y in zip(ts, ys)])
+            mu_g, sd_g = gamma.mean(0), gamma.std(0)
+            sd_g = np.where(sd_g > 1e-9, sd_g, 1.0)
+            z = (gamma - mu_g) / sd_g
+            mu_w = w.mean(0)
+            dw = w - mu_w
+            n = max(len(ys) - 1, 1)
+            self.context = {"mu_g": mu_g, "sd_g": sd_g, "mu_w": mu_w, "cov_ww": dw.T @ dw / n,
+                            "cov_wz": dw.T @ z / n, "cov_zz": z.T @ z / n + self.context_ridge * np.eye(z.shape[1])}
         return self
 
-    def conditioned(self, conditions: list[Condition]):
+    def given_task_params(self, task_params):
+        """The library's ProMP with the weight distribution conditioned on γ (see the class docstring)."""
+        import copy
+
+        c = self.context
+        g = np.asarray(task_params, dtype=float).reshape(-1)
+        if g.shape != c["mu_g"].shape or not np.isfinite(g).all():
+            raise ValueError(f"task_params must be {c['mu_g'].size} finite values, got {g.tolist()}")
+        z = (g - c["mu_g"]) / c["sd_g"]
+        gain = np.linalg.solve(c["cov_zz"], c["cov_wz"].T).T  # Σ_wz Σ_zz⁻¹
+        mean = c["mu_w"] + gain @ z
+        cov = c["cov_ww"] - gain @ c["cov_wz"].T
+        cov = 0.5 * (cov + cov.T) + 1e-8 * np.eye(len(mean))
+        return copy.deepcopy(self.promp).from_weight_distribution(mean, cov)
+
+    def conditioned(self, conditions: list[Condition], task_params=None):
         if self.promp is None:
             raise RuntimeError("the baseline is not fitted: call fit(demos) first")
-        promp = self.promp
+        if self.context is not None and task_params is None:
+            raise ValueError("this baseline was fitted with task_params: give the episode's task_params (γ)")
+        if self.context is None and task_params is not None:
+            raise ValueError("this baseline was fitted without task_params: fit(demos, task_params=...) first")
+        promp = self.promp if task_params is None else self.given_task_params(task_params)
         for k, c in enumerate(conditions):
             if len(c.values) != self.sm_dim:
                 raise ValueError(f"condition {k} has {len(c.values)} values; the SM has {self.sm_dim} dims")
@@ -56,11 +103,11 @@ class ProMPBaseline:
             promp = promp.condition_position(y, y_cov=cov, t=c.phase, t_max=1.0)
         return promp
 
-    def predict(self, phases, conditions: list[Condition]) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, phases, conditions: list[Condition], task_params=None) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(phases, dtype=float).reshape(-1)
         if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
             raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
-        promp = self.conditioned(conditions)
+        promp = self.conditioned(conditions, task_params)
         # The library rescales the query times by their maximum (T / max T), so it is always evaluated on
         # the whole [0, 1] grid and interpolated at the requested phases.
         grid = np.linspace(0.0, 1.0, GRID_POINTS)

@@ -62,3 +62,38 @@ def test_dmp_refuses_what_it_cannot_condition_on():
         dmp.predict(tau, [Condition(1.0, (np.nan, 0.5), dims=(1,))])
     with pytest.raises(RuntimeError, match="not fitted"):
         DMPBaseline().predict(tau, [Condition(0.0, (0.0, 0.0))])
+
+
+def test_promp_conditioned_on_task_params_follows_an_unseen_gamma():
+    # the demo's amplitude is a linear function of γ[0]; γ[1] is noise the regression must not follow much
+    tau = np.linspace(0, 1, 100)
+    rng = np.random.default_rng(0)
+    gam = np.stack([np.linspace(0.2, 0.6, 8), rng.normal(size=8)], 1)
+    demos = [np.stack([tau, g[0] * np.sin(np.pi * tau)], 1) for g in gam]
+    promp = ProMPBaseline(n_weights_per_dim=15, context_ridge=1e-3).fit(demos, task_params=gam)
+    mean, std = promp.predict(tau, [], task_params=[0.45, 0.0])
+    np.testing.assert_allclose(mean[:, 1], 0.45 * np.sin(np.pi * tau), atol=0.02)
+    assert std[50, 1] < 0.02  # the amplitude is explained by γ: little spread is left
+    plain, plain_std = ProMPBaseline(n_weights_per_dim=15).fit(demos).predict(tau, [])
+    assert plain_std[50, 1] > 0.1 and abs(plain[50, 1] - 0.4) < 0.02  # without γ: the average, wide
+    # γ and SM conditions together: a via point far from the γ-conditioned mean (0.45) pulls it most of the way
+    via, _ = promp.predict([0.5], [Condition(0.5, (0.5, 0.3))], task_params=[0.45, 0.0])
+    assert abs(via[0, 1] - 0.3) < 0.02
+
+
+def test_promp_task_params_bad_inputs():
+    tau = np.linspace(0, 1, 50)
+    demos = [np.stack([tau, a * tau], 1) for a in (0.1, 0.2, 0.3)]
+    with pytest.raises(ValueError, match="one row per demo"):
+        ProMPBaseline().fit(demos, task_params=np.zeros((2, 1)))
+    with pytest.raises(ValueError, match="NaN"):
+        ProMPBaseline().fit(demos, task_params=[[0.0], [np.nan], [1.0]])
+    with pytest.raises(ValueError, match="context_ridge"):
+        ProMPBaseline(context_ridge=0.0)
+    ctx = ProMPBaseline().fit(demos, task_params=[[0.0], [1.0], [2.0]])
+    with pytest.raises(ValueError, match="fitted with task_params"):
+        ctx.predict([0.5], [])
+    with pytest.raises(ValueError, match="1 finite values"):
+        ctx.predict([0.5], [], task_params=[0.0, 1.0])
+    with pytest.raises(ValueError, match="fitted without task_params"):
+        ProMPBaseline().fit(demos).predict([0.5], [], task_params=[0.0])
