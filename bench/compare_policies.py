@@ -119,6 +119,13 @@ TASKS = {
         # ACT / Diffusion read γ as observation.environment_state: a renamed copy (see the docstring)
         "env_state_copy": {"act", "diffusion"},
     },
+    "cnmp_metaworld_push": {
+        "dataset": "datasets/cnmp_metaworld_push",
+        "env": ["--env.type=cnmp_metaworld", "--env.task=push-v3"],
+        "configs": {"cnmp": "configs/cnmp_metaworld_push.json", "act": "configs/act_cpu_metaworld_push.json",
+                    "diffusion": "configs/diffusion_cpu_metaworld_push.json"},
+        "env_state_copy": {"act", "diffusion"},
+    },
     "cnmp_so101": {  # the third-party SO-101 pick and place (extra so101); γ is its own environment_state
         "dataset": "datasets/cnmp_so101",
         "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],
