@@ -108,6 +108,10 @@ class CNMPConfig(PreTrainedConfig):
             the episode's first frame and at a uniform frame j) with queries at j, j + 1 and ``m_max_targets``
             uniform frames; loss = (1 - w) NLL(random draws) + w NLL(execution-shaped draws). Use it when the
             action depends sharply on the sensed state (a reactive demonstrator, delta actions).
+        feedback_draw_queries: The number of uniform frames queried by an execution-shaped draw besides j and
+            j + 1; None: ``m_max_targets``. 0 trains exactly execution's two queries (the action and the next
+            sensed state given the current one), the objective of behaviour cloning on (τ, state, γ); with many
+            uniform queries, the action at j is one term among them.
         nll_beta: β of the β-NLL (Seitzer et al., ICLR 2022): each SM dim's NLL term is weighted by
             stop_gradient(σ^(2β)). 0 is the paper's NLL. With the plain NLL the mean's gradient is scaled by
             1/σ², so a dim the model finds hard early (large σ) stops being fitted and stays blurred; β = 0.5
@@ -181,6 +185,7 @@ class CNMPConfig(PreTrainedConfig):
     partial_obs_prob: float = 0.25
     sensed_obs_prob: float = 0.5
     feedback_draw_weight: float = 0.0
+    feedback_draw_queries: int | None = None
     draws_per_sample: int = 1
     nll_beta: float = 0.0
     commanded_loss_weight: float = 1.0
@@ -286,6 +291,9 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
         if not 0.0 <= self.feedback_draw_weight <= 1.0:
             raise ValueError(f"feedback_draw_weight must be in [0, 1], got {self.feedback_draw_weight}")
+        if self.feedback_draw_queries is not None and (int(self.feedback_draw_queries) != self.feedback_draw_queries
+                                                       or self.feedback_draw_queries < 0):
+            raise ValueError(f"feedback_draw_queries must be an integer >= 0 (or None), got {self.feedback_draw_queries}")
         if not self.commanded_loss_weight > 0:
             raise ValueError(f"commanded_loss_weight must be > 0, got {self.commanded_loss_weight}")
         if self.commanded_loss_weight != 1.0 and self.n_experts > 1:

@@ -744,15 +744,16 @@ class CNMPPolicy(PreTrainedPolicy):
                        inputs: Tensor | None = None) -> tuple[Context, Targets]:
         """Execution-shaped draws (``feedback_draw_weight``), ``draws_per_sample`` per named episode: the
         context is the sensed dims at the episode's first frame (with ``condition_on_start``) and at a uniform
-        frame j; the queries are j, j + 1 and ``m_max_targets`` uniform frames. ``inputs``: the episode-level
+        frame j; the queries are j, j + 1 and ``feedback_draw_queries`` (default ``m_max_targets``) uniform frames.
+        ``inputs``: the episode-level
         input already computed for these draws (``episodes_for``'s ``task_params``); None computes it."""
         c = self.config
         dev = self.normalizer.sm_std.device
         episode_index = episode_index.reshape(-1)
         if inputs is None:
             inputs = self._training_inputs(episode_index, c.draws_per_sample)
-        values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample),
-                                                c.m_max_targets, generator)
+        m = c.m_max_targets if c.feedback_draw_queries is None else int(c.feedback_draw_queries)
+        values, phase = self.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample), m, generator)
         values, phase = self.normalizer.sm(values.to(dev)), phase.to(dev)
         first = 0 if c.execution.condition_on_start else 1
         n_ctx = 2 - first

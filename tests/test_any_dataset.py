@@ -472,6 +472,23 @@ def test_feedback_draws_have_the_shape_of_execution(root, meta):
     loss.backward()  # both parts reach the weights
 
 
+def test_feedback_draw_queries_sets_the_uniform_queries(root, meta):
+    # None (default): m_max_targets uniform queries besides j and j + 1; 0: exactly execution's two queries
+    kw = dict(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=1.0,
+              draws_per_sample=2, m_max_targets=4, execution={"condition_on_start": False})
+    eps = torch.tensor([1, 2])
+    for queries, n_targets in ((None, 2 + 4), (0, 2), (3, 2 + 3)):
+        policy = make_policy(CNMPConfig(**kw, feedback_draw_queries=queries), ds_meta=meta)
+        context, targets = policy.feedback_draws(eps, torch.Generator().manual_seed(0))
+        assert context.phase.shape == (4, 1) and targets.phase.shape == (4, n_targets)
+        assert torch.equal(targets.phase[:, 0], context.phase[:, 0])  # "now" is the sensed point's phase
+        loss, info = policy.forward({"episode_index": eps}, generator=torch.Generator().manual_seed(1))
+        assert torch.isfinite(loss) and abs(info["nll"] - info["nll_feedback"]) < 1e-4  # weight 1: feedback only
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="feedback_draw_queries must be an integer >= 0"):
+            CNMPConfig(feedback_draw_queries=bad)
+
+
 def test_feedback_draws_need_sensed_dims_and_a_weight_in_0_1(meta):
     with pytest.raises(ValueError, match="feedback_draw_weight must be in"):
         CNMPConfig(feedback_draw_weight=1.5)
