@@ -211,3 +211,23 @@ def test_evaluation_seeds_are_not_recorded_episodes(env):
     evals = np.stack([env.reset(seed=100000 + i)[0]["environment_state"] for i in range(50)])
     d = np.linalg.norm(evals[:, None, [0, 1, 3, 4]] - starts[None, :, [0, 1, 3, 4]], axis=-1)
     assert d.min() > 1e-6  # distinct (200 uniform draws in 15 x 20 cm: two may lie within a mm)
+
+
+def test_bc_reference_bench_reads_the_dataset_and_runs(tmp_path, monkeypatch, capsys):
+    import json
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import so101_bc_reference as bc
+
+    x, y, length = bc.load_frames(DATASET)
+    df = _episodes()
+    assert x.shape == (len(df), 1 + len(AGENT_POS_NAMES) + len(ENV_STATE_NAMES)) and y.shape == (len(df), 4)
+    assert length == DEMO_LENGTH and x[0, 0] == 0.0 and x[DEMO_LENGTH - 1, 0] == 1.0  # τ over each demo
+    np.testing.assert_allclose(x[:DEMO_LENGTH, -6:], np.repeat(x[:1, -6:], DEMO_LENGTH, 0))  # γ: the first frame's
+    with pytest.raises(FileNotFoundError, match="no LeRobotDataset"):
+        bc.load_frames(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["so101_bc_reference.py", "--seeds", "0", "--steps", "3", "--episodes", "1"])
+    res = bc.main()
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == res
+    assert len(res["runs"]) == 1 and res["runs"][0]["pc_success"] in (0.0, 100.0)
