@@ -19,7 +19,8 @@ One cell of the table = (task, method, number of demos N). For each cell this sc
    Diffusion predict chunks, so most of their calls pop a queued action; their p95 / max are recorded too;
 4. writes ``outputs/compare/<task>/<method>_<N>demos.json``.
 
-``promp`` (``--methods promp``, obstacle2d only) is not a LeRobot policy: it runs in-process on the same env
+``promp`` (``--methods promp``; obstacle2d, conditioned on the episode's SM points, and cnmp_pickplace, a
+contextual ProMP conditioned on γ) is not a LeRobot policy: it runs in-process on the same env
 and seeds and is labelled so in its JSON and in the table (see ``PROMP_LABEL``).
 
 An existing result file with ``"status": "ok"`` is skipped (``--force`` reruns it). A failing training or
@@ -99,8 +100,10 @@ METHODS = ("cnmp", "act", "diffusion", "promp")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
 PROMP_LABEL = ("in-process, not lerobot-eval: movement_primitives' ProMP (31 RBFs per dim, lerobot_cnmp.baselines."
                "ProMPBaseline) fitted on the first N demos' actions, conditioned on the episode's conditions "
-               "(the env's own list, what observation.environment_state encodes), its mean commanded open loop "
-               "on the demos' schedule (step k -> phase k/199, then the goal); same env, same seeds")
+               "(the env's own list, what observation.environment_state encodes) or, on a task with γ, on the "
+               "episode's γ (a contextual ProMP: the weights' Gaussian conditioned on γ), its mean commanded open "
+               "loop on the demos' schedule (step k -> phase k/(T-1), T the demos' length, then the goal); same "
+               "env, same seeds")
 RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
 
 TASKS = {
@@ -109,7 +112,7 @@ TASKS = {
         "env": ["--env.type=cnmp_obstacle2d", "--env.render_mode=null"],
         "configs": {"cnmp": "configs/cnmp_obstacle2d.json", "act": "configs/act_cpu_obstacle2d.json",
                     "diffusion": "configs/diffusion_cpu_obstacle2d.json"},
-        "promp": True,  # the episode's conditions are points of the SM: ProMP can be conditioned on them
+        "promp": "conditions",  # the episode's conditions are points of the SM: ProMP is conditioned on them
     },
     "cnmp_metaworld_reach": {
         "dataset": "datasets/cnmp_metaworld_reach",
@@ -144,6 +147,7 @@ TASKS = {
         "steps": {"cnmp": 4000},  # its committed config's steps (fewer than the 9000 of the budget)
         # the grid's four corners first, then the four inner points: N = 5 covers the grid's extent
         "episode_order": [0, 7, 3, 4, 1, 6, 2, 5],
+        "promp": "task_params",  # a contextual ProMP: its weights conditioned on the episode's γ
     },
 }
 # Not a cell: cnmp_weights. Its observation is observation.state alone (the class is in the sensed F/T, no γ),
@@ -392,7 +396,6 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     return rec
 
 
-DEMO_STEPS = 200
 
 
 def promp_cell(task: str, n: int, n_episodes: int) -> dict:
@@ -409,22 +412,31 @@ def promp_cell(task: str, n: int, n_episodes: int) -> dict:
     order = np.argsort(data["episode_index"])[episodes(task, n)] if n <= len(data["demos"]) else []
     if len(order) < n:
         raise CellError(f"{task} has {len(order)} demos, {n} asked")
+    contextual = TASKS[task].get("promp") == "task_params"
+    if contextual and data["task_params"] is None:
+        raise CellError(f"{task}'s dataset has no observation.task_params to condition a contextual ProMP on")
     t0 = time.perf_counter()
-    promp = ProMPBaseline().fit([data["demos"][i] for i in order])
+    promp = ProMPBaseline().fit([data["demos"][i] for i in order],
+                                task_params=data["task_params"][order] if contextual else None)
     fit_s = time.perf_counter() - t0
     env_cfg = env_config(task)
     env = gym.make(env_cfg.gym_id, disable_env_checker=True, **env_cfg.gym_kwargs)
     successes, plan_s = [], []
-    phases = np.linspace(0.0, 1.0, DEMO_STEPS)
+    length = int(np.median([len(data["demos"][i]) for i in order]))  # the demos' schedule, in control steps
+    phases = np.linspace(0.0, 1.0, length)
     try:
         for i in range(n_episodes):
             env.reset(seed=SEED + i)
+            base = env.unwrapped
             t0 = time.perf_counter()
-            mean, _ = promp.predict(phases, list(env.unwrapped.conditions))
+            if contextual:
+                mean, _ = promp.predict(phases, [], task_params=base.task_params)
+            else:
+                mean, _ = promp.predict(phases, list(base.conditions))
             plan_s.append(time.perf_counter() - t0)
             success, k = False, 0
             while True:
-                _, _, term, trunc, info = env.step(mean[min(k, DEMO_STEPS - 1)])
+                _, _, term, trunc, info = env.step(mean[min(k, length - 1)].astype(np.float32))
                 success |= bool(info["is_success"])
                 k += 1
                 if term or trunc:
@@ -441,7 +453,8 @@ def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
     """The ProMP cell in a child process of this script (its wall time and peak RSS are the whole cell's:
     fit + episodes)."""
     if not TASKS[task].get("promp"):
-        raise CellError(f"ProMP is not set up for {task}: its episodes carry no SM-point conditions to condition on")
+        raise CellError(f"ProMP is not set up for {task}: its episodes carry neither SM-point conditions nor γ "
+                        "in the SM's units to condition on")
     cell_dir = out / task / f"promp_{n}demos"
     cell_dir.mkdir(parents=True, exist_ok=True)
     part = cell_dir / "promp_cell.json"
@@ -633,7 +646,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     p.add_argument("--methods", nargs="+", default=list(STOCK), choices=list(METHODS),
-                   help="promp: in-process ProMP (see PROMP_LABEL), only where the task's conditions allow it")
+                   help="promp: in-process ProMP (see PROMP_LABEL), where the task's conditions or γ allow it")
     p.add_argument("--demos", nargs="+", type=int, default=[5, 10])
     p.add_argument("--n_episodes", type=int, default=50)
     p.add_argument("--batch_size", type=int, default=10, help="lerobot-eval --eval.batch_size")

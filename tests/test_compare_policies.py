@@ -169,3 +169,21 @@ def test_train_loop_time_from_the_log(tmp_path):
     log.write_text("Training:  50%|#####     | 450/900 [00:59<00:59, 7.5step/s]\nTraceback ...\n")
     assert cp.train_loop_s(log) is None
     assert cp.train_loop_s(tmp_path / "missing.log") is None
+
+
+def test_promp_cell_on_a_gamma_task_is_a_contextual_promp(monkeypatch):
+    # cnmp_pickplace has no SM-point conditions: its ProMP is conditioned on the episode's γ
+    from lerobot_cnmp.baselines import ProMPBaseline
+
+    seen = []
+    real = ProMPBaseline.predict
+
+    def spy(self, phases, conditions, task_params=None):
+        seen.append((len(phases), list(conditions), None if task_params is None else list(task_params)))
+        return real(self, phases, conditions, task_params)
+
+    monkeypatch.setattr(ProMPBaseline, "predict", spy)
+    res = cp.promp_cell("cnmp_pickplace", 2, 1)
+    assert 0.0 <= res["pc_success"] <= 100.0 and res["n_episodes"] == 1
+    (n_phases, conditions, gamma), = seen
+    assert n_phases == 200 and conditions == [] and gamma is not None and len(gamma) == 2
