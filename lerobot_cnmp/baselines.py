@@ -65,24 +65,25 @@ class ProMPBaseline:
             mu_w = w.mean(0)
             dw = w - mu_w
             n = max(len(ys) - 1, 1)
-            self.context = {"mu_g": mu_g, "sd_g": sd_g, "mu_w": mu_w, "cov_ww": dw.T @ dw / n,
-                            "cov_wz": dw.T @ z / n, "cov_zz": z.T @ z / n + self.context_ridge * np.eye(z.shape[1])}
+            cov_wz = dw.T @ z / n
+            cov_zz = z.T @ z / n + self.context_ridge * np.eye(z.shape[1])
+            gain = np.linalg.solve(cov_zz, cov_wz.T).T  # Σ_wz Σ_zz⁻¹
+            cov = dw.T @ dw / n - gain @ cov_wz.T  # the conditional covariance does not depend on γ's value
+            cov = 0.5 * (cov + cov.T) + 1e-8 * np.eye(len(mu_w))
+            self.context = {"mu_g": mu_g, "sd_g": sd_g, "mu_w": mu_w, "gain": gain, "cov": cov}
         return self
 
     def given_task_params(self, task_params):
-        """The library's ProMP with the weight distribution conditioned on γ (see the class docstring)."""
-        import copy
+        """The library's ProMP with the weight distribution conditioned on γ (see the class docstring); a new
+        object, as the library's own ``condition_position`` returns one."""
+        from movement_primitives.promp import ProMP
 
         c = self.context
         g = np.asarray(task_params, dtype=float).reshape(-1)
         if g.shape != c["mu_g"].shape or not np.isfinite(g).all():
             raise ValueError(f"task_params must be {c['mu_g'].size} finite values, got {g.tolist()}")
-        z = (g - c["mu_g"]) / c["sd_g"]
-        gain = np.linalg.solve(c["cov_zz"], c["cov_wz"].T).T  # Σ_wz Σ_zz⁻¹
-        mean = c["mu_w"] + gain @ z
-        cov = c["cov_ww"] - gain @ c["cov_wz"].T
-        cov = 0.5 * (cov + cov.T) + 1e-8 * np.eye(len(mean))
-        return copy.deepcopy(self.promp).from_weight_distribution(mean, cov)
+        mean = c["mu_w"] + c["gain"] @ ((g - c["mu_g"]) / c["sd_g"])
+        return ProMP(self.promp.n_dims, self.promp.n_weights_per_dim).from_weight_distribution(mean, c["cov"])
 
     def conditioned(self, conditions: list[Condition], task_params=None):
         if self.promp is None:
