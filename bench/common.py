@@ -28,6 +28,16 @@ def policy_batch(pre, obs: dict) -> dict:
     return pre({**preprocess_observation(batched), "task": [""]})
 
 
+def read_frames(root: Path):
+    """Every frame of a local LeRobotDataset's parquet files (``data/*/*.parquet``) as one pandas DataFrame."""
+    import pandas as pd
+
+    files = sorted((Path(root) / "data").rglob("*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"no LeRobotDataset at {root} (no data/*/*.parquet)")
+    return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+
+
 def predict_sm(policy, pre, post, batch: dict, phase, query_phases):
     """(μ, σ) of the SM at ``query_phases`` in the env's units, [len(query_phases), D] numpy each: the
     CNMP conditioned as the executor is at ``phase`` (the conditions, the start, the state sensed in

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO  # noqa: E402
+from common import REPO, read_frames  # noqa: E402
 
 DATASET = REPO / "datasets" / "cnmp_so101"
 MAX_STEPS = 300
@@ -34,12 +34,7 @@ MAX_STEPS = 300
 
 def load_frames(root: Path):
     """(inputs [N, 1 + S + G], actions [N, A], demo length in frames) of every frame of the dataset."""
-    import pandas as pd
-
-    files = sorted((Path(root) / "data").rglob("*.parquet"))
-    if not files:
-        raise FileNotFoundError(f"no LeRobotDataset at {root} (no data/*/*.parquet)")
-    df = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+    df = read_frames(root)
     for key in ("observation.state", "observation.environment_state", "action"):
         if key not in df:
             raise KeyError(f"{root} has no {key!r} column: this bench needs an SO-101 pick-and-place dataset")

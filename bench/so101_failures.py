@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,  # noqa: E402
-                    policy_batch, provenance)
+                    policy_batch, provenance, read_frames)
 
 CONFIG = REPO / "configs" / "cnmp_so101.json"
 DATASET = REPO / "datasets" / "cnmp_so101"
@@ -39,9 +39,7 @@ MAX_STEPS = 300
 
 def demo_offsets(root: Path) -> np.ndarray:
     """[episodes, 3] end-effector minus block centre at each demo's first closing frame."""
-    import pandas as pd
-
-    df = pd.concat([pd.read_parquet(f) for f in sorted((root / "data").glob("*/*.parquet"))])
+    df = read_frames(root)
     out = []
     for _, g in df.groupby("episode_index"):
         act, state = np.stack(g["action"].values), np.stack(g["observation.state"].values)
