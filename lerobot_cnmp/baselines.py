@@ -73,6 +73,32 @@ class ProMPBaseline:
             self.context = {"mu_g": mu_g, "sd_g": sd_g, "mu_w": mu_w, "gain": gain, "cov": cov}
         return self
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The fitted distribution as named arrays (what ``from_arrays`` rebuilds; the ProMP policy saves them)."""
+        if self.promp is None:
+            raise RuntimeError("the baseline is not fitted: call fit(demos) first")
+        out = {"weight_mean": self.promp.weight_mean, "weight_cov": self.promp.weight_cov}
+        if self.context is not None:
+            out.update({f"context_{k}": v for k, v in self.context.items()})
+        return {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, sm_dim: int, n_weights_per_dim: int, **kwargs) -> ProMPBaseline:
+        """Inverse of ``to_arrays``: the same distribution, hence the same predictions."""
+        from movement_primitives.promp import ProMP
+
+        self = cls(n_weights_per_dim=n_weights_per_dim, **kwargs)
+        a = {k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()}
+        n = sm_dim * n_weights_per_dim
+        if a["weight_mean"].shape != (n,) or a["weight_cov"].shape != (n, n):
+            raise ValueError(f"weight_mean / weight_cov of shapes {a['weight_mean'].shape} / {a['weight_cov'].shape} "
+                             f"do not fit {sm_dim} dims x {n_weights_per_dim} weights")
+        self.promp = ProMP(sm_dim, n_weights_per_dim).from_weight_distribution(a["weight_mean"], a["weight_cov"])
+        self.sm_dim = sm_dim
+        ctx = {k.removeprefix("context_"): v for k, v in a.items() if k.startswith("context_")}
+        self.context = ctx or None
+        return self
+
     def given_task_params(self, task_params):
         """The library's ProMP with the weight distribution conditioned on γ (see the class docstring); a new
         object, as the library's own ``condition_position`` returns one."""
