@@ -146,6 +146,12 @@ def provenance(path: str | Path) -> dict:
     out = {"path": str(path), "step": None, "training_command": None, "trained_by": None,
            "weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()[:16] if weights.is_file() else None}
     own = path / PROVENANCE_FILE
+    fit_info = path.parent / "fit_info.json"  # a ProMP policy written by lerobot-cnmp-fit-promp
+    if fit_info.is_file() and not (path / "train_config.json").is_file():
+        info = json.loads(fit_info.read_text())
+        out.update(step=0, trained_by="lerobot-cnmp-fit-promp (closed form)", training_command=info.get("command"),
+                   fit_info=str(fit_info))
+        return out
     if own.is_file():
         out.update(json.loads(own.read_text()))
         return out

@@ -19,9 +19,10 @@ One cell of the table = (task, method, number of demos N). For each cell this sc
    Diffusion predict chunks, so most of their calls pop a queued action; their p95 / max are recorded too;
 4. writes ``outputs/compare/<task>/<method>_<N>demos.json``.
 
-``promp`` (``--methods promp``; obstacle2d, conditioned on the episode's SM points, and cnmp_pickplace, a
-contextual ProMP conditioned on γ) is not a LeRobot policy: it runs in-process on the same env
-and seeds and is labelled so in its JSON and in the table (see ``PROMP_LABEL``).
+``promp`` (``--methods promp``; obstacle2d, conditioned on the episode's SM points, and the tasks with γ, a
+contextual ProMP conditioned on γ) has no gradient training: step 1 is ``lerobot-cnmp-fit-promp`` (closed
+form, on the same N episodes), which saves it as a LeRobot policy (``--policy.type=promp``); steps 2-4 are
+the same as the others'. It runs open loop and is labelled so in its JSON and in the table (``PROMP_LABEL``).
 
 An existing result file with ``"status": "ok"`` is skipped (``--force`` reruns it). A failing training or
 evaluation writes the cell's file with ``"status": "error"``, the error and the log's path, and the script
@@ -98,12 +99,14 @@ BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of trai
 
 METHODS = ("cnmp", "act", "diffusion", "promp")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
-PROMP_LABEL = ("in-process, not lerobot-eval: movement_primitives' ProMP (31 RBFs per dim, lerobot_cnmp.baselines."
-               "ProMPBaseline) fitted on the first N demos' actions, conditioned on the episode's conditions "
-               "(the env's own list, what observation.environment_state encodes) or, on a task with γ, on the "
-               "episode's γ (a contextual ProMP: the weights' Gaussian conditioned on γ), its mean commanded open "
-               "loop on the demos' schedule (step k -> phase k/(T-1), T the demos' length, then the goal); same "
-               "env, same seeds")
+PROMP_LABEL = ("open loop: movement_primitives' ProMP (31 RBFs per action dim, lerobot_cnmp.baselines.ProMPBaseline) "
+               "fitted in closed form on the first N demos' actions by lerobot-cnmp-fit-promp, saved as a LeRobot "
+               "policy (--policy.type=promp) and evaluated by the same lerobot-eval; at each episode's first step "
+               "it is conditioned on the episode's conditions (observation.environment_state) or, on a task with "
+               "γ, on γ (a contextual ProMP: the weights' Gaussian conditioned on γ), and its mean action "
+               "trajectory is commanded on the demos' schedule (step k -> phase k/(T-1), T the demos' median "
+               "length, then the last action), whatever the robot senses")
+PROMP_BUDGET = "ProMP is fitted in closed form (EM of movement_primitives), no training steps; train_loop_s is the fit"
 RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
 
 TASKS = {
@@ -121,6 +124,8 @@ TASKS = {
                     "diffusion": "configs/diffusion_cpu_metaworld_reach.json"},
         # ACT / Diffusion read γ as observation.environment_state: a renamed copy (see the docstring)
         "env_state_copy": {"act", "diffusion"},
+        # a contextual ProMP over the demos' actions (MetaWorld's hand deltas + gripper), conditioned on γ
+        "promp": "task_params",
     },
     "cnmp_metaworld_push": {
         "dataset": "datasets/cnmp_metaworld_push",
@@ -128,6 +133,15 @@ TASKS = {
         "configs": {"cnmp": "configs/cnmp_metaworld_push.json", "act": "configs/act_cpu_metaworld_push.json",
                     "diffusion": "configs/diffusion_cpu_metaworld_push.json"},
         "env_state_copy": {"act", "diffusion"},
+        "promp": "task_params",
+    },
+    "cnmp_metaworld_pickplace": {
+        "dataset": "datasets/cnmp_metaworld_pickplace",
+        "env": ["--env.type=cnmp_metaworld", "--env.task=pick-place-v3"],
+        "configs": {"cnmp": "configs/cnmp_metaworld_pickplace.json", "act": "configs/act_cpu_metaworld_pickplace.json",
+                    "diffusion": "configs/diffusion_cpu_metaworld_pickplace.json"},
+        "env_state_copy": {"act", "diffusion"},
+        "promp": "task_params",
     },
     "cnmp_so101": {  # the third-party SO-101 pick and place (extra so101); γ is its own environment_state
         "dataset": "datasets/cnmp_so101",
@@ -189,9 +203,11 @@ def env_state_copy(task: str, out: Path) -> Path:
 
     src_root = REPO / TASKS[task]["dataset"]
     dst = out / "datasets" / f"{Path(src_root).name}_envstate"
-    if (dst / "meta" / "stats.json").is_file():
+    source = dataset_fingerprint(src_root)
+    made_from = dst / "made_from.json"
+    if (dst / "meta" / "stats.json").is_file() and made_from.is_file():
         stats = json.loads((dst / "meta" / "stats.json").read_text())
-        if "observation.environment_state" in stats:
+        if "observation.environment_state" in stats and json.loads(made_from.read_text()) == source:
             return dst
     import shutil
 
@@ -208,7 +224,19 @@ def env_state_copy(task: str, out: Path) -> Path:
     stats["observation.environment_state"] = src_stats[key]
     stats.pop(key, None)
     stats_file.write_text(json.dumps(stats, indent=4))
+    made_from.write_text(json.dumps(source, indent=2))  # last: a copy cut short is remade on the next call
     return dst
+
+
+def dataset_fingerprint(root: Path) -> dict:
+    """sha256 of a dataset's data and meta files: the renamed copy is remade when its source changes (a
+    re-recorded dataset must not be trained on through a stale copy)."""
+    import hashlib
+
+    files = sorted(p for p in Path(root).rglob("*") if p.is_file() and p.suffix in (".parquet", ".json"))
+    if not files:
+        raise CellError(f"{root} holds no dataset (no parquet or json files)")
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
 
 
 def run_logged(cmd: list[str], log: Path, env: dict) -> dict:
@@ -263,6 +291,13 @@ def train_command(task: str, method: str, n: int, steps: int, out_dir: Path, dat
     if dataset_root is not None:
         cmd.insert(2, f"--dataset.root={dataset_root.relative_to(REPO) if REPO in dataset_root.parents else dataset_root}")
     return cmd
+
+
+def fit_command(task: str, n: int, out_dir: Path) -> list[str]:
+    """ProMP's "training": ``lerobot-cnmp-fit-promp`` on the cell's episodes (closed form, see PROMP_LABEL)."""
+    return [str(BIN / "lerobot-cnmp-fit-promp"), f"--dataset_root={REPO / TASKS[task]['dataset']}",
+            "--episodes=" + ",".join(map(str, episodes(task, n))), f"--conditioning={TASKS[task]['promp']}",
+            f"--output_dir={out_dir}"]
 
 
 def eval_command(task: str, method: str, ckpt: Path, n_episodes: int, batch_size: int, out_dir: Path) -> list[str]:
@@ -343,8 +378,10 @@ def measure_latency(task: str, method: str, ckpt: Path, n_calls: int = 600) -> d
 
 def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episodes: int, batch_size: int) -> dict:
     """Train, evaluate and time one cell; return its result record (raises CellError on a failure)."""
-    if method == "promp":
-        return run_promp_cell(task, n, out=out, n_episodes=n_episodes)
+    promp = method == "promp"
+    if promp and not TASKS[task].get("promp"):
+        raise CellError(f"ProMP is not set up for {task}: its episodes carry neither SM-point conditions nor γ "
+                        "to condition on")
     cell_dir = out / task / f"{method}_{n}demos"
     train_dir, eval_dir = cell_dir / "train", cell_dir / "eval"
     import shutil
@@ -354,23 +391,28 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     n_total = json.loads((REPO / TASKS[task]["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
     if n > n_total:
         raise CellError(f"{task} has {n_total} demos, {n} asked")
-    rec = {"task": task, "method": method, "n_demos": n, "episodes": episodes(task, n), "steps": steps,
-           "budget_rule": BUDGET_RULE, "date": dt.datetime.now().isoformat(timespec="seconds"),
-           "config": TASKS[task]["configs"][method], "host_cpus": os.cpu_count()}
+    rec = {"task": task, "method": method, "n_demos": n, "episodes": episodes(task, n), "steps": 0 if promp else steps,
+           "budget_rule": PROMP_BUDGET if promp else BUDGET_RULE, "date": dt.datetime.now().isoformat(timespec="seconds"),
+           "config": None if promp else TASKS[task]["configs"][method], "host_cpus": os.cpu_count()}
+    if promp:
+        rec["label"] = PROMP_LABEL
     env = child_env()
 
-    cmd = train_command(task, method, n, steps, train_dir, dataset_root)
+    cmd = fit_command(task, n, train_dir) if promp else train_command(task, method, n, steps, train_dir, dataset_root)
+    tool = "lerobot-cnmp-fit-promp" if promp else "lerobot-train"
     rec["train_command"] = shlex.join(cmd)
     rec["train_log"] = str(cell_dir / "train.log")
     r = run_logged(cmd, cell_dir / "train.log", env)
     rec.update(train_wall_s=r["wall_s"], train_loop_s=train_loop_s(cell_dir / "train.log"),
                train_peak_rss_mb=r["peak_rss_mb"])
-    ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
+    ckpt = train_dir / "pretrained_model" if promp else train_dir / "checkpoints" / "last" / "pretrained_model"
     if r["rc"] != 0 or not (ckpt / "config.json").is_file():
-        raise CellError(f"lerobot-train failed (exit {r['rc']}), log {cell_dir / 'train.log'}:\n"
+        raise CellError(f"{tool} failed (exit {r['rc']}), log {cell_dir / 'train.log'}:\n"
                         f"{log_tail(cell_dir / 'train.log')}", rec)
     rec["checkpoint"] = provenance(ckpt)
-    if rec["checkpoint"]["step"] != steps:
+    if promp:
+        rec["train_loop_s"] = json.loads((train_dir / "fit_info.json").read_text())["fit_s"]  # the fit alone
+    elif rec["checkpoint"]["step"] != steps:
         raise CellError(f"the checkpoint is at step {rec['checkpoint']['step']}, not {steps}", rec)
 
     cmd = eval_command(task, method, ckpt, n_episodes, batch_size, eval_dir)
@@ -396,86 +438,6 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     return rec
 
 
-
-
-def promp_cell(task: str, n: int, n_episodes: int) -> dict:
-    """ProMP on the task's env (see ``PROMP_LABEL``), in this process: the fit's time, success over the
-    episodes seeded ``SEED``..., and the p50 of conditioning + predicting one episode's plan."""
-    import gymnasium as gym
-    import numpy as np
-
-    import lerobot_cnmp.envs  # noqa: F401  (registers the gym ids)
-    from lerobot_cnmp.baselines import ProMPBaseline
-    from lerobot_cnmp.data import load_demos
-
-    data = load_demos(REPO / TASKS[task]["dataset"])
-    order = np.argsort(data["episode_index"])[episodes(task, n)] if n <= len(data["demos"]) else []
-    if len(order) < n:
-        raise CellError(f"{task} has {len(order)} demos, {n} asked")
-    contextual = TASKS[task].get("promp") == "task_params"
-    if contextual and data["task_params"] is None:
-        raise CellError(f"{task}'s dataset has no observation.task_params to condition a contextual ProMP on")
-    t0 = time.perf_counter()
-    promp = ProMPBaseline().fit([data["demos"][i] for i in order],
-                                task_params=data["task_params"][order] if contextual else None)
-    fit_s = time.perf_counter() - t0
-    env_cfg = env_config(task)
-    env = gym.make(env_cfg.gym_id, disable_env_checker=True, **env_cfg.gym_kwargs)
-    successes, plan_s = [], []
-    length = int(np.median([len(data["demos"][i]) for i in order]))  # the demos' schedule, in control steps
-    phases = np.linspace(0.0, 1.0, length)
-    try:
-        for i in range(n_episodes):
-            env.reset(seed=SEED + i)
-            base = env.unwrapped
-            t0 = time.perf_counter()
-            if contextual:
-                mean, _ = promp.predict(phases, [], task_params=base.task_params)
-            else:
-                mean, _ = promp.predict(phases, list(base.conditions))
-            plan_s.append(time.perf_counter() - t0)
-            success, k = False, 0
-            while True:
-                _, _, term, trunc, info = env.step(mean[min(k, length - 1)].astype(np.float32))
-                success |= bool(info["is_success"])
-                k += 1
-                if term or trunc:
-                    break
-            successes.append(success)
-    finally:
-        env.close()
-    return {"pc_success": 100.0 * float(np.mean(successes)), "n_episodes": n_episodes,
-            "seeds": list(range(SEED, SEED + n_episodes)), "fit_s": round(fit_s, 3),
-            "plan_p50_ms": round(float(np.percentile(np.asarray(plan_s) * 1e3, 50)), 3)}
-
-
-def run_promp_cell(task: str, n: int, *, out: Path, n_episodes: int) -> dict:
-    """The ProMP cell in a child process of this script (its wall time and peak RSS are the whole cell's:
-    fit + episodes)."""
-    if not TASKS[task].get("promp"):
-        raise CellError(f"ProMP is not set up for {task}: its episodes carry neither SM-point conditions nor γ "
-                        "in the SM's units to condition on")
-    cell_dir = out / task / f"promp_{n}demos"
-    cell_dir.mkdir(parents=True, exist_ok=True)
-    part = cell_dir / "promp_cell.json"
-    part.unlink(missing_ok=True)
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--promp_cell", task, str(n), str(part),
-           f"--n_episodes={n_episodes}"]
-    rec = {"task": task, "method": "promp", "n_demos": n, "episodes": episodes(task, n), "steps": 0,
-           "budget_rule": "ProMP is fitted in closed form (EM of movement_primitives), no training steps",
-           "date": dt.datetime.now().isoformat(timespec="seconds"), "label": PROMP_LABEL,
-           "eval_command": shlex.join(cmd), "train_command": None, "checkpoint": None, "host_cpus": os.cpu_count()}
-    r = run_logged(cmd, cell_dir / "promp.log", child_env())
-    if r["rc"] != 0 or not part.is_file():
-        raise CellError(f"the ProMP cell failed (exit {r['rc']}), log {cell_dir / 'promp.log'}:\n"
-                        f"{log_tail(cell_dir / 'promp.log')}", rec)
-    res = json.loads(part.read_text())
-    rec.update(res, train_wall_s=res["fit_s"], train_peak_rss_mb=r["peak_rss_mb"], cell_process_wall_s=r["wall_s"],
-               select_action_p50_ms=None, step_with_processors_p50_ms=None,
-               note="train_wall_s is the fit alone; train_peak_rss_mb is the peak of the whole cell's process "
-                    "(fit + episodes); no select_action: the plan is computed once per episode (plan_p50_ms)")
-    rec["status"] = "ok"
-    return rec
 
 
 def run(args) -> int:
@@ -548,7 +510,7 @@ def report_table(recs: list[dict]) -> str:
             lines.append(f"| {r['task']} | {r['method']} | {r['n_demos']} | **error**: {err} | | | | | | | | "
                          f"{r.get('date', '')} |")
             continue
-        method = r["method"] + (" (in-process†)" if r.get("label") else "")
+        method = r["method"] + (" (open loop†)" if r.get("label") else "")
         sel = "" if r.get("select_action_p50_ms") is None else \
             f"{f(r['select_action_p50_ms'], 3)} / {f(r.get('select_action_p95_ms'), 2)}"
         lines.append(f"| {r['task']} | {method} | {r['n_demos']} | {f(r['pc_success'])} | {r['n_episodes']} | "
@@ -571,7 +533,7 @@ def summary_table(recs: list[dict]) -> str:
     tasks = {t: i for i, t in enumerate(TASKS)}
     keys = sorted({(r["task"], r["n_demos"]) for r in cells}, key=lambda k: (tasks.get(k[0], 99), k[0], k[1]))
     cell = {(r["task"], r["n_demos"], r["method"]): r for r in cells}
-    lines = ["| task | demos | " + " | ".join(m + (" (in-process)" if m == "promp" else "") for m in methods) + " |",
+    lines = ["| task | demos | " + " | ".join(m + (" (open loop)" if m == "promp" else "") for m in methods) + " |",
              "|---|---:|" + "---:|" * len(methods)]
     for task, n in keys:
         vals = []
@@ -606,9 +568,9 @@ def report_plot(recs: list[dict], path: Path) -> Path:
                       sorted({r["method"] for r in ok} - set(METHODS)):
             pts = sorted((r["n_demos"], r["pc_success"]) for r in ok if r["task"] == task and r["method"] == method)
             if pts:
-                in_process = any(r.get("label") for r in ok if r["method"] == method)
-                ax.plot(*zip(*pts, strict=True), marker="o", label=method + (" (in-process)" if in_process else ""),
-                        linestyle=":" if in_process else "-")
+                open_loop = any(r.get("label") for r in ok if r["method"] == method)
+                ax.plot(*zip(*pts, strict=True), marker="o", label=method + (" (open loop)" if open_loop else ""),
+                        linestyle=":" if open_loop else "-")
         ax.set_title(task)
         ax.set_xlabel("demonstrations")
         ax.set_ylim(-3, 103)
@@ -646,7 +608,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     p.add_argument("--methods", nargs="+", default=list(STOCK), choices=list(METHODS),
-                   help="promp: in-process ProMP (see PROMP_LABEL), where the task's conditions or γ allow it")
+                   help="promp: the open-loop ProMP policy (see PROMP_LABEL), where the task's conditions or γ allow it")
     p.add_argument("--demos", nargs="+", type=int, default=[5, 10])
     p.add_argument("--n_episodes", type=int, default=50)
     p.add_argument("--batch_size", type=int, default=10, help="lerobot-eval --eval.batch_size")
@@ -655,12 +617,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--report", action="store_true", help="only build the table and the plot from the result files")
     p.add_argument("--plot", type=Path, default=PLOT)
-    p.add_argument("--promp_cell", nargs=3, metavar=("TASK", "N", "OUT_JSON"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.promp_cell:
-        task, n, out_json = args.promp_cell
-        Path(out_json).write_text(json.dumps(promp_cell(task, int(n), args.n_episodes)))
-        return 0
     if args.report:
         print(report(args.out, args.plot))
         return 0

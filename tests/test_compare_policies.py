@@ -149,7 +149,7 @@ def test_a_tasks_episode_order(tmp_path):
 
 def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path):
     with pytest.raises(cp.CellError, match="ProMP is not set up"):
-        cp.run_cell("cnmp_metaworld_reach", "promp", 5, out=tmp_path, steps=0, n_episodes=2, batch_size=1)
+        cp.run_cell("cnmp_so101", "promp", 5, out=tmp_path, steps=0, n_episodes=2, batch_size=1)
 
 
 def test_report_labels_in_process_rows(tmp_path):
@@ -157,7 +157,7 @@ def test_report_labels_in_process_rows(tmp_path):
     _write(tmp_path, {**_ok("cnmp_obstacle2d", "cnmp", 5, 60.0), "method": "promp", "steps": 0,
                       "label": cp.PROMP_LABEL, "select_action_p50_ms": None})
     text = cp.report(tmp_path, tmp_path / "p.png")
-    assert "| cnmp_obstacle2d | promp (in-process†) | 5 | 60.0 |" in text
+    assert "| cnmp_obstacle2d | promp (open loop†) | 5 | 60.0 |" in text
     assert "† " + cp.PROMP_LABEL in text
 
 
@@ -171,19 +171,12 @@ def test_train_loop_time_from_the_log(tmp_path):
     assert cp.train_loop_s(tmp_path / "missing.log") is None
 
 
-def test_promp_cell_on_a_gamma_task_is_a_contextual_promp(monkeypatch):
-    # cnmp_pickplace has no SM-point conditions: its ProMP is conditioned on the episode's γ
-    from lerobot_cnmp.baselines import ProMPBaseline
-
-    seen = []
-    real = ProMPBaseline.predict
-
-    def spy(self, phases, conditions, task_params=None):
-        seen.append((len(phases), list(conditions), None if task_params is None else list(task_params)))
-        return real(self, phases, conditions, task_params)
-
-    monkeypatch.setattr(ProMPBaseline, "predict", spy)
-    res = cp.promp_cell("cnmp_pickplace", 2, 1)
-    assert 0.0 <= res["pc_success"] <= 100.0 and res["n_episodes"] == 1
-    (n_phases, conditions, gamma), = seen
-    assert n_phases == 200 and conditions == [] and gamma is not None and len(gamma) == 2
+def test_promp_cells_fit_with_the_cli_and_evaluate_with_lerobot_eval(tmp_path):
+    # ProMP's "training" is the closed-form fit on the cell's episodes; its evaluation is the same lerobot-eval
+    fit = cp.fit_command("cnmp_pickplace", 2, tmp_path / "train")
+    assert Path(fit[0]).name == "lerobot-cnmp-fit-promp"
+    assert "--episodes=0,7" in fit and "--conditioning=task_params" in fit  # the grid corners first
+    assert cp.fit_command("cnmp_obstacle2d", 3, tmp_path)[3] == "--conditioning=conditions"
+    ev = cp.eval_command("cnmp_metaworld_pickplace", "promp", tmp_path / "ckpt", 50, 10, tmp_path / "eval")
+    assert Path(ev[0]).name == "lerobot-eval" and "--env.task=pick-place-v3" in ev
+    assert not any(a.startswith("--rename_map=") for a in ev)  # ProMP reads γ under CNMP's name
