@@ -562,30 +562,37 @@ def report_plot(recs: list[dict], path: Path) -> Path:
     tasks = sorted({r["task"] for r in recs}, key=lambda t: (order.get(t, 99), t))
     if not tasks:
         raise ValueError("no result files to plot")
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.4 * len(tasks), 3.8), squeeze=False)
-    for ax, task in zip(axes[0], tasks, strict=True):
-        for method in [m for m in METHODS if any(r["method"] == m for r in ok)] + \
-                      sorted({r["method"] for r in ok} - set(METHODS)):
+    ncol = min(4, len(tasks))
+    nrow = -(-len(tasks) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.4 * ncol, 3.6 * nrow + 0.6), squeeze=False)
+    panels = list(axes.flat)
+    for ax in panels[len(tasks):]:
+        ax.set_visible(False)
+    methods = [m for m in METHODS if any(r["method"] == m for r in ok)] + sorted({r["method"] for r in ok} - set(METHODS))
+    color = {m: f"C{i}" for i, m in enumerate(methods)}  # one colour per method in every panel
+    for ax, task in zip(panels, tasks):
+        for method in methods:
             pts = sorted((r["n_demos"], r["pc_success"]) for r in ok if r["task"] == task and r["method"] == method)
             if pts:
                 open_loop = any(r.get("label") for r in ok if r["method"] == method)
                 ax.plot(*zip(*pts, strict=True), marker="o", label=method + (" (open loop)" if open_loop else ""),
-                        linestyle=":" if open_loop else "-")
+                        linestyle=":" if open_loop else "-", color=color[method])
         ax.set_title(task)
         ax.set_xlabel("demonstrations")
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
         ns = sorted({r["n_demos"] for r in recs if r["task"] == task})
         ax.set_xticks(ns)
-    axes[0][0].set_ylabel("pc_success (%)")
+    for row in axes:
+        row[0].set_ylabel("pc_success (%)")
     handles = {}
-    for ax in axes[0]:
+    for ax in panels:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(lab, h)
     fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), frameon=False)
     fig.suptitle("success vs demonstrations (50 episodes, seeds 100000..; equal training wall time per cell)",
                  fontsize=10)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.6 / (3.6 * nrow + 0.6), 1, 1))
     from lerobot_cnmp.plot import save_figure
 
     return save_figure(fig, path, dpi=120)
