@@ -65,7 +65,7 @@ table says what each method reaches in ~2 min of CPU, not at its plateau.
 
 ```bash
 python bench/compare_policies.py --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
-python bench/compare_policies.py --report   # outputs/compare/report.md and docs/compare_policies.png
+python bench/compare_policies.py --report   # outputs/compare/report.md, docs/compare_policies.png and .md
 ```
 """
 
@@ -605,8 +605,11 @@ def report(out: Path, plot: Path) -> str:
     table = report_table(recs)
     text = (f"# Policy comparison\n\nBudget rule: {recs[0].get('budget_rule', BUDGET_RULE)}\n\n"
             f"pc_success (training loop s):\n\n{summary_table(recs)}\n\nEvery cell:\n\n{table}\n\n"
-            f"Seeds: lerobot-eval --seed={SEED}; commands in each cell's JSON under {out}.\n")
+            f"Seeds: lerobot-eval --seed={SEED}; commands in each cell's JSON under "
+            f"{out.resolve().relative_to(REPO) if out.resolve().is_relative_to(REPO) else out}.\n")
     (out / "report.md").write_text(text)
+    plot.with_suffix(".md").parent.mkdir(parents=True, exist_ok=True)
+    plot.with_suffix(".md").write_text(text)  # beside the plot (docs/compare_policies.md), committed with it
     report_plot(recs, plot)
     return text
 

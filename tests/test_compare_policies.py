@@ -112,6 +112,7 @@ def test_report_table_and_plot(tmp_path):
     assert [r.split("|")[2].strip() for r in obstacle] == ["cnmp", "act", "cnmp", "act"]
     assert plot.is_file() and plot.stat().st_size > 1000
     assert (tmp_path / "report.md").read_text() == text
+    assert plot.with_suffix(".md").read_text() == text  # the committed copy beside the plot
 
 
 def test_report_without_results_is_an_error(tmp_path):
