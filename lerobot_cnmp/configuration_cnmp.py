@@ -32,6 +32,11 @@ class CNMPAdamConfig(AdamConfig):
 GATE_COMMIT = ("always", "where_decided")  # CNMPConfig.gate_commit (CNMP.mixture_loss)
 
 
+def identity_normalization() -> dict[str, NormalizationMode]:
+    """LeRobot's normalizer steps pass every feature type through unchanged."""
+    return {kind: NormalizationMode.IDENTITY for kind in ("VISUAL", "STATE", "ENV", "ACTION")}
+
+
 @PreTrainedConfig.register_subclass("cnmp")
 @dataclass
 class CNMPConfig(PreTrainedConfig):
@@ -235,17 +240,10 @@ class CNMPConfig(PreTrainedConfig):
     optimizer_fused: bool = True
     scheduler_decay_lr: float | None = 1e-5
 
-    normalization_mapping: dict[str, NormalizationMode] = field(
-        default_factory=lambda: {
-            # CNMP normalizes its SM and γ itself, with statistics saved in its weights (SMNormalizer in
-            # modeling_cnmp): LeRobot's normalizer steps pass these features through, so the statistics
-            # lerobot-train gives them when fine-tuning (--policy.path) cannot change CNMP's scaling.
-            "VISUAL": NormalizationMode.IDENTITY,
-            "STATE": NormalizationMode.IDENTITY,
-            "ENV": NormalizationMode.IDENTITY,
-            "ACTION": NormalizationMode.IDENTITY,
-        }
-    )
+    # CNMP normalizes its SM and γ itself, with statistics saved in its weights (SMNormalizer in
+    # modeling_cnmp): LeRobot's normalizer steps pass these features through, so the statistics
+    # lerobot-train gives them when fine-tuning (--policy.path) cannot change CNMP's scaling.
+    normalization_mapping: dict[str, NormalizationMode] = field(default_factory=identity_normalization)
 
     def __post_init__(self):
         super().__post_init__()

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig
 
+from lerobot_cnmp.configuration_cnmp import identity_normalization
 from lerobot_cnmp.sm_spec import TASK_PARAMS
 
 PROMP_CONDITIONING = ("none", "task_params", "conditions")
@@ -48,14 +49,8 @@ class ProMPConfig(PreTrainedConfig):
     task_dim: int = 0
     n_obs_steps: int = 1
 
-    normalization_mapping: dict[str, NormalizationMode] = field(
-        default_factory=lambda: {  # the ProMP works in the dataset's units: LeRobot's normalizers pass through
-            "VISUAL": NormalizationMode.IDENTITY,
-            "STATE": NormalizationMode.IDENTITY,
-            "ENV": NormalizationMode.IDENTITY,
-            "ACTION": NormalizationMode.IDENTITY,
-        }
-    )
+    # the ProMP works in the dataset's units: LeRobot's normalizers pass through
+    normalization_mapping: dict[str, NormalizationMode] = field(default_factory=identity_normalization)
 
     def __post_init__(self):
         super().__post_init__()
