@@ -109,7 +109,7 @@ def _matching_config(train_cfg: dict) -> Path | None:
 # CNMP settings that change what is trained; a run whose values differ from its committed config's (or, where
 # the config does not set them, from CNMPConfig's defaults) was given them on the command line
 _TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll",
-                    "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "expert_selection", "nll_beta",
+                    "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers", "expert_selection", "nll_beta",
                     "commanded_loss_weight", "feedback_draw_weight", "draws_per_sample", "n_max_context",
                     "m_max_targets", "context_in_targets", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr",
                     "scheduler_decay_lr", "state_tracks_action")

@@ -163,10 +163,19 @@ TASKS = {
         "episode_order": [0, 7, 3, 4, 1, 6, 2, 5],
         "promp": "task_params",  # a contextual ProMP: its weights conditioned on the episode's γ
     },
+    # sensorimotor classification (paper Sec. IV-D): CNMP with feedback vs ProMP open loop; no ACT / Diffusion
+    "cnmp_weights": {
+        "dataset": "datasets/cnmp_weights",
+        "env": ["--env.type=cnmp_weights", "--env.render_mode=null"],
+        "configs": {"cnmp": "configs/cnmp_weights.json"},
+        # no conditions, no γ: the class is only in the sensed F/T, which an open-loop plan never reads
+        "promp": "none",
+        "no_cells": {m: "its observation is observation.state alone (the class is in the sensed F/T, no γ), and "
+                        "LeRobot 0.6.1's ACT and Diffusion refuse that ('You must provide at least one image or "
+                        "the environment state among the inputs.', their validate_features)"
+                     for m in ("act", "diffusion")},
+    },
 }
-# Not a cell: cnmp_weights. Its observation is observation.state alone (the class is in the sensed F/T, no γ),
-# and LeRobot 0.6.1's ACT and Diffusion refuse that ("You must provide at least one image or the environment
-# state among the inputs.", their validate_features).
 
 
 def episodes(task: str, n: int) -> list[int]:
@@ -382,6 +391,8 @@ def run_cell(task: str, method: str, n: int, *, out: Path, steps: int, n_episode
     if promp and not TASKS[task].get("promp"):
         raise CellError(f"ProMP is not set up for {task}: its episodes carry neither SM-point conditions nor γ "
                         "to condition on")
+    if method in TASKS[task].get("no_cells", {}):
+        raise CellError(f"{method} has no cell on {task}: {TASKS[task]['no_cells'][method]}")
     cell_dir = out / task / f"{method}_{n}demos"
     train_dir, eval_dir = cell_dir / "train", cell_dir / "eval"
     import shutil
@@ -453,6 +464,9 @@ def run(args) -> int:
         for n in args.demos:
             for method in args.methods:
                 path = result_path(args.out, task, method, n)
+                if method in TASKS[task].get("no_cells", {}):
+                    print(f"skip {task} {method}: no cell, {TASKS[task]['no_cells'][method]}", flush=True)
+                    continue
                 if not should_run(path, args.force):
                     print(f"skip {task} {method} {n} demos: {path} exists (--force reruns it)", flush=True)
                     continue

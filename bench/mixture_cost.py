@@ -2,6 +2,7 @@
 2D obstacle data.
 
     python bench/mixture_cost.py [--experts 4] [--mixture_nll cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
+                                 [--shared_decoder_layers S] [--gate_commit C]
                                  [--steps 3000] [--every 250]
 
 Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
@@ -69,6 +70,9 @@ def main() -> dict:
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
+    p.add_argument("--shared_decoder_layers", type=int, default=0,
+                   help="the mixture's decoder hidden layers shared by its experts (CNMPConfig.shared_decoder_layers)")
+    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"))
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
                    help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")
@@ -79,7 +83,9 @@ def main() -> dict:
 
     cfg = config(CONFIG)
     val = validation_set(args.validation, 500000)
-    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef") if getattr(args, k) is not None}
+    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit")
+             if getattr(args, k) is not None}
+    coefs["shared_decoder_layers"] = args.shared_decoder_layers
     curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed),
               "mixture": run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed, n_experts=args.experts,
                              mixture_nll=args.mixture_nll, **coefs)}

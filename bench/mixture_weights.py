@@ -2,7 +2,7 @@
 after the lift (issue 17).
 
     python bench/mixture_weights.py [--experts 4] [--mixture_nll likelihood] [--gate_entropy_coef C]
-                                    [--gate_commit always|where_decided] [--steps N] [--save DIR]
+                                    [--gate_commit always|where_decided|redundant] [--steps N] [--save DIR]
 
 Fits the config's CNMP (``configs/cnmp_weights.json``: model, sampling, learning rate, steps, batch size)
 with ``n_experts`` decoders on the 20 demos of ``datasets/cnmp_weights`` with the in-memory API. Then, for
@@ -46,7 +46,7 @@ def main() -> dict:
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided"),
+    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
                    help="which contexts the gate-entropy term asks to commit (default: the config's)")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)

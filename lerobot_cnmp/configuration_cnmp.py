@@ -29,7 +29,7 @@ class CNMPAdamConfig(AdamConfig):
     fused: bool = True
 
 
-GATE_COMMIT = ("always", "where_decided")  # CNMPConfig.gate_commit (CNMP.mixture_loss)
+GATE_COMMIT = ("always", "where_decided", "redundant")  # CNMPConfig.gate_commit (CNMP.mixture_loss)
 
 
 def identity_normalization() -> dict[str, NormalizationMode]:
@@ -87,9 +87,16 @@ class CNMPConfig(PreTrainedConfig):
         gate_commit: Which contexts the gate-entropy term asks to commit (``CNMP.mixture_loss``): ``"always"``
             (every context, CNEP's) or ``"where_decided"`` (each episode's term weighted by 1 - H(π)/log K,
             without gradient: a context the gate spreads over modes is left a posterior, one it leans on is
-            pushed to one expert). On the weights task neither meets both gate bars (README "Mixture decoder").
+            pushed to one expert) or ``"redundant"`` (instead of the entropy, the gate's mass split between
+            experts whose predictions for the context agree within their σ: a context whose experts predict
+            different modes is left a posterior, one whose experts agree is committed to one of them).
+            README "Mixture decoder" compares the three on the weights task.
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
             batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
+        shared_decoder_layers: With K > 1, how many of ``decoder_layers``' hidden layers the experts share (a
+            trunk over [t_q, γ, r]; each expert keeps the layers after it and its own output layer). 0 (the
+            default): K whole query networks, CNEP's. A trunk trains on every episode instead of each expert on
+            its share, and costs one network's work instead of K (README "Mixture decoder": training cost).
         expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
             first step, follow the most probable expert (``"most_probable"``) or one drawn from π
             (``"sample"``, e.g. to spread choices over equally likely modes).
@@ -180,6 +187,7 @@ class CNMPConfig(PreTrainedConfig):
     batch_entropy_coef: float = 0.88
     mixture_nll: str = "likelihood"
     gate_commit: str = "always"
+    shared_decoder_layers: int = 0
     expert_selection: str = "most_probable"
     mode_switch_margin: float = 0.3
 
@@ -267,6 +275,9 @@ class CNMPConfig(PreTrainedConfig):
                              f"{self.batch_entropy_coef}")
         if self.gate_commit not in GATE_COMMIT:
             raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {self.gate_commit!r}")
+        if not 0 <= self.shared_decoder_layers <= len(self.decoder_layers):
+            raise ValueError(f"shared_decoder_layers must be between 0 and the {len(self.decoder_layers)} hidden "
+                             f"layers of decoder_layers, got {self.shared_decoder_layers}")
         if self.mixture_nll not in ("cnep", "likelihood"):
             raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):

@@ -225,6 +225,7 @@ class CNMP(nn.Module):
         mixture_nll: str = "likelihood",
         nll_beta: float = 0.0,
         gate_commit: str = "always",
+        shared_decoder_layers: int = 0,
     ):
         super().__init__()
         if int(n_experts) != n_experts or n_experts < 1:
@@ -252,6 +253,13 @@ class CNMP(nn.Module):
         if self.n_experts == 1:  # the plain CNMP: today's parameter names, so its checkpoints load
             self.decoder = mlp(q_in, q_widths)
         else:  # CNEP: K experts and the gate over them, both reading the same r
+            n_shared = int(shared_decoder_layers)
+            if not 0 <= n_shared <= len(decoder_layers):
+                raise ValueError(f"shared_decoder_layers must be between 0 and the {len(decoder_layers)} hidden layers "
+                                 f"of decoder_layers, got {shared_decoder_layers}")
+            if n_shared:  # a trunk of the query network shared by the experts, their own layers after it
+                self.trunk = mlp(q_in, tuple(decoder_layers[:n_shared]))
+                q_in, q_widths = decoder_layers[n_shared - 1], q_widths[n_shared:]
             self.decoders = ExpertMLPs(self.n_experts, q_in, q_widths)
             self.gate = nn.Linear(encoder_layers[-1], self.n_experts)
 
@@ -326,6 +334,16 @@ class CNMP(nn.Module):
             return mean[:, None], std[:, None]
         q = self.decoders
         t_dim = 1 + 2 * self.frequencies.numel()
+        if hasattr(self, "trunk"):  # shared hidden layers (first layer split as in ``decode``), then each expert's
+            first = self.trunk[0]
+            per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
+            h = F.linear(per_episode, first.weight[:, t_dim:], first.bias) + F.linear(
+                self.phase_features(query_phase), first.weight[:, :t_dim])
+            h = F.relu(run_mlp(self.trunk, h, start=1))  # [B, M, H]
+            b, m, width = h.shape
+            out = q(h.reshape(1, b * m, width).expand(self.n_experts, -1, -1))
+            mean, raw = out.reshape(self.n_experts, b, m, 2 * self.sm_dim).transpose(0, 1).split(self.sm_dim, dim=-1)
+            return mean, self.min_std + F.softplus(raw)
         w0, b0 = q.weights[0], q.biases[0]  # [K, H, in], [K, H]
         per_episode = self._inputs([], [r[:, None, :]], task_params, 1)[:, 0]  # [B, G + R]
         per_episode = torch.einsum("bi,khi->kbh", per_episode, w0[:, :, t_dim:]) + b0[:, None, :]  # [K, B, H]
@@ -371,7 +389,19 @@ class CNMP(nn.Module):
         w = targets.valid[:, None, :].to(per_dim.dtype)
         return (per_dim.sum(dim=-1) * w).sum(dim=-1) / w.sum(dim=-1).clamp(min=1.0)
 
-    def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor) -> tuple[Tensor, dict]:
+    @torch.no_grad()
+    def expert_similarity(self, r: Tensor, task_params: Tensor | None = None, n_phases: int = 21) -> Tensor:
+        """s_bkl = exp(-max_t Σ_d (μ_bk(t) - μ_bl(t))² / (σ_bk(t)² + σ_bl(t)²)), [B, K, K], without gradient:
+        1 where experts k and l predict the same trajectory for context b (within their σ at every phase of a
+        fixed grid of ``n_phases`` in [0, 1]), near 0 where they predict different modes anywhere."""
+        grid = torch.linspace(0.0, 1.0, n_phases, dtype=r.dtype, device=r.device).expand(r.shape[0], -1)
+        means, stds = self.decode_experts(r, grid, task_params)  # [B, K, T, D]
+        diff = (means[:, :, None] - means[:, None, :]) ** 2  # [B, K, K, T, D]
+        var = stds[:, :, None] ** 2 + stds[:, None, :] ** 2
+        return torch.exp(-(diff / var).sum(dim=-1).amax(dim=-1))
+
+    def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor,
+                     similarity: Tensor | None = None) -> tuple[Tensor, dict]:
         """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
         the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
 
@@ -384,6 +414,17 @@ class CNMP(nn.Module):
         context the gate spreads over several modes (≈ 1/4 each for four zones) is left to the likelihood,
         which keeps π a posterior there, while a context the gate leans on keeps being pushed to one expert
         (the likelihood alone is indifferent between experts that fit a decided context equally well).
+        ``gate_commit="redundant"`` replaces the entropy by the gate's mass split between experts that predict
+        the same trajectory for the context, s_bkl from ``expert_similarity`` [B, K, K] (required then):
+
+            + gate_entropy_coef · mean_b Σ_{k≠l} π_bk π_bl s_bkl / (1 - 1/K)   -- 1 for a uniform gate over
+                                                                               K identical experts
+
+        so splitting π over experts that say the same thing (a decided context: after the lift, every
+        expert that fits it) is penalized, and splitting it over experts that predict different modes (a
+        context shared by modes: before the grasp) costs nothing: that part of π stays the likelihood's
+        posterior. Unlike ``"where_decided"`` it reads the experts' predictions, not the gate, so a gate that
+        leans does not push itself further.
 
         with NLL_mix, by ``mixture_nll``:
 
@@ -413,7 +454,14 @@ class CNMP(nn.Module):
             nll = -(log_lik / n).mean()
         h = entropy(probs)
         commit = (1.0 - h / log_k).clamp(min=0.0).detach() if self.gate_commit == "where_decided" else None
-        ind_entropy = (h.mean() if commit is None else (commit * h).mean()) / log_k
+        if self.gate_commit == "redundant":
+            if similarity is None:
+                raise ValueError("gate_commit='redundant' needs the experts' similarity (CNMP.expert_similarity)")
+            off_diag = similarity * (1.0 - torch.eye(self.n_experts, dtype=probs.dtype, device=probs.device))
+            split = torch.einsum("bk,bkl,bl->b", probs, off_diag, probs) / (1.0 - 1.0 / self.n_experts)
+            ind_entropy = split.mean()
+        else:
+            ind_entropy = (h.mean() if commit is None else (commit * h).mean()) / log_k
         batch_entropy = entropy(probs.mean(dim=0)) / log_k
         loss = nll + self.gate_entropy_coef * ind_entropy - self.batch_entropy_coef * batch_entropy
         info = {"nll": nll.item(), "expected_nll": expected.item(), "gate_entropy": ind_entropy.item(),
@@ -425,8 +473,12 @@ class CNMP(nn.Module):
     def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
         """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
         if self.n_experts > 1:
-            means, stds, probs = self.mixture(context, targets.phase)
-            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1))
+            r = self.condition(context)
+            means, stds = self.decode_experts(r, targets.phase, context.task_params)
+            probs = self.gate_probs(r)
+            similarity = self.expert_similarity(r, context.task_params) if self.gate_commit == "redundant" else None
+            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1),
+                                           similarity)
             mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
         else:
             mean, std = self(context, targets.phase)
@@ -613,6 +665,7 @@ class CNMPPolicy(PreTrainedPolicy):
             mixture_nll=config.mixture_nll,
             nll_beta=config.nll_beta,
             gate_commit=config.gate_commit,
+            shared_decoder_layers=config.shared_decoder_layers,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec

@@ -181,3 +181,17 @@ def test_promp_cells_fit_with_the_cli_and_evaluate_with_lerobot_eval(tmp_path):
     ev = cp.eval_command("cnmp_metaworld_pickplace", "promp", tmp_path / "ckpt", 50, 10, tmp_path / "eval")
     assert Path(ev[0]).name == "lerobot-eval" and "--env.task=pick-place-v3" in ev
     assert not any(a.startswith("--rename_map=") for a in ev)  # ProMP reads γ under CNMP's name
+
+
+def test_methods_without_cells_on_a_task_are_skipped_with_the_reason(tmp_path, monkeypatch, capsys):
+    """cnmp_weights has CNMP and ProMP cells only: ACT / Diffusion are skipped (printed, no file, exit 0)."""
+    real_run_cell, calls = cp.run_cell, []
+    monkeypatch.setattr(cp, "run_cell", lambda task, method, n, **kw: calls.append(method) or _ok(task, method, n, 1.0))
+    args = ["--tasks", "cnmp_weights", "--methods", "cnmp", "act", "diffusion", "promp", "--demos", "10",
+            "--out", str(tmp_path)]
+    assert cp.main(args) == 0
+    assert calls == ["cnmp", "promp"]
+    assert "validate_features" in capsys.readouterr().out
+    assert not cp.result_path(tmp_path, "cnmp_weights", "act", 10).exists()
+    with pytest.raises(cp.CellError, match="act has no cell on cnmp_weights"):
+        real_run_cell("cnmp_weights", "act", 10, out=tmp_path, steps=1, n_episodes=2, batch_size=1)

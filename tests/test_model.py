@@ -561,3 +561,26 @@ def test_api_fit_with_a_seed_is_reproducible_from_initialization_on():
                                                                             progress=False) for _ in range(2)]
     a, b = (torch.cat([p.detach().reshape(-1) for p in f.policy.parameters()]) for f in fits)
     assert torch.equal(a, b)
+
+
+def test_shared_decoder_layers_and_redundant_gate_commit():
+    """A trunk shared by the experts gives each expert trunk -> own layers; bad sizes are a clear error; the
+    redundancy commitment penalizes π split over identical experts, not over experts predicting different modes."""
+    import torch.nn.functional as F
+
+    net = CNMP(sm_dim=3, n_experts=3, shared_decoder_layers=2)
+    r, q = torch.randn(4, 128), torch.rand(4, 7)
+    mean, _ = net.decode_experts(r, q)
+    x = F.relu(net.trunk(torch.cat([q[..., None], r[:, None].expand(-1, 7, -1)], -1)))
+    for i in range(len(net.decoders.weights)):
+        x = F.linear(F.relu(x) if i else x, net.decoders.weights[i][1], net.decoders.biases[i][1])
+    assert torch.allclose(x[..., :3], mean[:, 1], atol=1e-5)
+    with pytest.raises(ValueError, match="shared_decoder_layers"):
+        CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
+    red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0)
+    probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
+    with pytest.raises(ValueError, match="similarity"):
+        red.mixture_loss(nll, probs, torch.tensor([4]))
+    same, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.ones(1, 2, 2))
+    apart, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.eye(2)[None])
+    assert same.item() - apart.item() == pytest.approx(1.0)
