@@ -90,7 +90,8 @@ class CNMPConfig(PreTrainedConfig):
             pushed to one expert) or ``"redundant"`` (instead of the entropy, the gate's mass split between
             experts whose predictions for the context agree within their σ: a context whose experts predict
             different modes is left a posterior, one whose experts agree is committed to one of them).
-            README "Mixture decoder" compares the three on the weights task.
+            README "Mixture decoder" has the weights-task figures of the first two; ``"redundant"`` is not
+            benchmarked yet.
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
             batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
         shared_decoder_layers: With K > 1, how many of ``decoder_layers``' hidden layers the experts share (a

@@ -310,15 +310,17 @@ class CNMP(nn.Module):
         if self.n_experts > 1:
             means, stds = self.decode_experts(r, query_phase, task_params)
             return pick_expert(means, stds, self.gate_probs(r).argmax(dim=-1))
-        first = self.decoder[0]
-        t_dim = 1 + 2 * self.frequencies.numel()
-        per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
-        h = F.linear(per_episode, first.weight[:, t_dim:], first.bias) + F.linear(
-            self.phase_features(query_phase), first.weight[:, :t_dim]
-        )
-        out = run_mlp(self.decoder, h, start=1)
+        out = run_mlp(self.decoder, self._first_layer(self.decoder[0], r, query_phase, task_params), start=1)
         mean, raw = out.split(self.sm_dim, dim=-1)
         return mean, self.min_std + F.softplus(raw)
+
+    def _first_layer(self, first: nn.Linear, r: Tensor, query_phase: Tensor, task_params: Tensor | None) -> Tensor:
+        """A query network's first layer on [t_q, γ, r], [B, M, H]: W_t·t_q + (W_γr·[γ, r] + b), the second
+        term once per episode (see ``decode``)."""
+        t_dim = 1 + 2 * self.frequencies.numel()
+        per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
+        return F.linear(per_episode, first.weight[:, t_dim:], first.bias) + F.linear(
+            self.phase_features(query_phase), first.weight[:, :t_dim])
 
     def gate_probs(self, r: Tensor) -> Tensor:
         """π(r) = softmax(W_g r + b_g): each expert's probability of being the context's mode, [B, K]."""
@@ -335,10 +337,7 @@ class CNMP(nn.Module):
         q = self.decoders
         t_dim = 1 + 2 * self.frequencies.numel()
         if hasattr(self, "trunk"):  # shared hidden layers (first layer split as in ``decode``), then each expert's
-            first = self.trunk[0]
-            per_episode = self._inputs([], [r[:, None, :]], task_params, 1)  # [B, 1, G + R]
-            h = F.linear(per_episode, first.weight[:, t_dim:], first.bias) + F.linear(
-                self.phase_features(query_phase), first.weight[:, :t_dim])
+            h = self._first_layer(self.trunk[0], r, query_phase, task_params)
             h = F.relu(run_mlp(self.trunk, h, start=1))  # [B, M, H]
             b, m, width = h.shape
             out = q(h.reshape(1, b * m, width).expand(self.n_experts, -1, -1))
