@@ -279,6 +279,9 @@ class CNMPConfig(PreTrainedConfig):
         if not 0 <= self.shared_decoder_layers <= len(self.decoder_layers):
             raise ValueError(f"shared_decoder_layers must be between 0 and the {len(self.decoder_layers)} hidden "
                              f"layers of decoder_layers, got {self.shared_decoder_layers}")
+        if self.shared_decoder_layers and self.n_experts == 1:
+            raise ValueError(f"shared_decoder_layers={self.shared_decoder_layers} shares decoder layers between "
+                             "experts, but n_experts is 1: set n_experts > 1 or shared_decoder_layers 0")
         if self.mixture_nll not in ("cnep", "likelihood"):
             raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):

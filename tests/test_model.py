@@ -577,6 +577,8 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
     assert torch.allclose(x[..., :3], mean[:, 1], atol=1e-5)
     with pytest.raises(ValueError, match="shared_decoder_layers"):
         CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
+    with pytest.raises(ValueError, match="n_experts is 1"):
+        CNMPConfig(shared_decoder_layers=1)
     red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0)
     probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
     with pytest.raises(ValueError, match="similarity"):
