@@ -1,6 +1,7 @@
 """Multimodal sine benchmark, after the published protocol of CNEP (Yildirim & Ugur, arXiv 2402.08424).
 
-    python bench/sine_benchmark.py [--steps 4000] [--seed 0] [--experts 4]
+    python bench/sine_benchmark.py [--steps 4000] [--seed 0] [--experts 4] [--shared_decoder_layers S]
+                                   [--gate_commit C] [--gate_entropy_coef G]
 
 Data (as in the CNEP code, ``compare_cneps_on_4_sines_abl.py``): 4 modes x 32 demos of 200 steps on
 x = linspace(0, 1, 200). Mode i = 0..3: y = (sin((x + 0.2 (i+1)) · (i+1)π/2 + φ) + ε + 1) / 2, with a
@@ -84,6 +85,9 @@ def score(trajectories, demos) -> tuple[float, float]:
     return float(errors.mean()), float(errors.std())
 
 
+MIXTURE_SETTINGS = ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef", "shared_decoder_layers", "gate_commit")
+
+
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--steps", type=int, default=4000, help="CNMP training steps (batch 32)")
@@ -93,6 +97,10 @@ def main() -> dict:
     p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--shared_decoder_layers", type=int, default=None,
+                   help="decoder hidden layers the experts share (default: the config's)")
+    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
+                   help="(default: the config's)")
     p.add_argument("--plot", default=str(REPO / "outputs" / "sine_cnmp_vs_promp.png"))
     p.add_argument("--mixture_plot", default=str(REPO / "outputs" / "sine_mixture.png"))
     args = p.parse_args()
@@ -116,7 +124,7 @@ def main() -> dict:
     mixture, mix_fit_s = None, None
     if args.experts > 0:
         t0 = time.perf_counter()
-        settings = {k: getattr(args, k) for k in ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")
+        settings = {k: getattr(args, k) for k in MIXTURE_SETTINGS
                     if getattr(args, k) is not None}
         mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts, **settings).fit(
             demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
@@ -137,7 +145,7 @@ def main() -> dict:
         rows.insert(1, (f"mixture K={args.experts}", "mixture", [mixture.predict(x, c)[0][:, 0] for c in sets]))
         res.update(mixture_experts=args.experts, mixture_fit_s=round(mix_fit_s, 1),
                    mixture_settings={k: getattr(mixture.config, k) for k in
-                                     ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef")})
+                                     MIXTURE_SETTINGS})
     print(f"{'method':<16}{'error (mean ± std)':>22}{'published':>11}")
     for label, key, traj in rows:
         mean, std = score(traj, demos)

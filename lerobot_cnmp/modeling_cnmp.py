@@ -390,14 +390,16 @@ class CNMP(nn.Module):
 
     @torch.no_grad()
     def expert_similarity(self, r: Tensor, task_params: Tensor | None = None, n_phases: int = 21) -> Tensor:
-        """s_bkl = exp(-max_t Σ_d (μ_bk(t) - μ_bl(t))² / (σ_bk(t)² + σ_bl(t)²)), [B, K, K], without gradient:
-        1 where experts k and l predict the same trajectory for context b (within their σ at every phase of a
-        fixed grid of ``n_phases`` in [0, 1]), near 0 where they predict different modes anywhere."""
+        """s_bkl = exp(-max_t mean_d (μ_bk(t) - μ_bl(t))² / (σ_bk(t)² + σ_bl(t)²)), [B, K, K], without gradient:
+        1 where experts k and l predict the same trajectory for context b (within their σ, on average over the
+        SM dims, at every phase of a fixed grid of ``n_phases`` in [0, 1]), near 0 where they predict different
+        modes anywhere. (A sum over the D dims instead of the mean made s ≈ 0 for every pair on the 11-dim
+        weights task, so the term never acted.)"""
         grid = torch.linspace(0.0, 1.0, n_phases, dtype=r.dtype, device=r.device).expand(r.shape[0], -1)
         means, stds = self.decode_experts(r, grid, task_params)  # [B, K, T, D]
         diff = (means[:, :, None] - means[:, None, :]) ** 2  # [B, K, K, T, D]
         var = stds[:, :, None] ** 2 + stds[:, None, :] ** 2
-        return torch.exp(-(diff / var).sum(dim=-1).amax(dim=-1))
+        return torch.exp(-(diff / var).mean(dim=-1).amax(dim=-1))
 
     def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor,
                      similarity: Tensor | None = None) -> tuple[Tensor, dict]:

@@ -586,3 +586,17 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
     same, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.ones(1, 2, 2))
     apart, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.eye(2)[None])
     assert same.item() - apart.item() == pytest.approx(1.0)
+
+
+def test_expert_similarity_is_one_for_identical_experts_and_small_for_distinct_ones():
+    """s_kl = 1 where two experts predict the same trajectory, -> 0 where their means differ by many σ."""
+    net = CNMP(sm_dim=11, n_experts=3)
+    with torch.no_grad():
+        for p in (*net.decoders.weights, *net.decoders.biases):
+            p[1] = p[0]
+        net.decoders.biases[-1][2, :11] += 50.0  # expert 2's mean shifted by 50 in every dim
+    s = net.expert_similarity(torch.randn(2, 128))
+    assert s.shape == (2, 3, 3)
+    assert torch.allclose(s[:, 0, 1], torch.ones(2)) and torch.allclose(s.diagonal(dim1=1, dim2=2), torch.ones(2, 3))
+    assert (s[:, 0, 2] < 1e-3).all() and torch.allclose(s, s.transpose(1, 2))
+    assert not s.requires_grad
