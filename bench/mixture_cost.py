@@ -44,7 +44,8 @@ def validation_nll(model, val) -> float:
     return float(np.mean(out))
 
 
-def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> list[tuple[int, float, float]]:
+def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> tuple[list[tuple[int, float, float]], object]:
+    """(steps, training seconds, validation NLL) every ``every`` steps, and the fitted model's CNMPConfig."""
     import torch
 
     from lerobot_cnmp.data import load_demos
@@ -61,7 +62,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> list[
 
     model.fit(load_demos(DATASET)["demos"], steps=steps, batch_size=cfg["batch_size"], seed=seed, progress=False,
               callback=callback, callback_every=every)
-    return points
+    return points, model.config
 
 
 def main() -> dict:
@@ -70,8 +71,9 @@ def main() -> dict:
     p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
-    p.add_argument("--shared_decoder_layers", type=int, default=0,
-                   help="the mixture's decoder hidden layers shared by its experts (CNMPConfig.shared_decoder_layers)")
+    p.add_argument("--shared_decoder_layers", type=int, default=None,
+                   help="the mixture's decoder hidden layers shared by its experts (default: the config's, "
+                        "CNMPConfig.shared_decoder_layers)")
     p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"))
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
@@ -83,12 +85,13 @@ def main() -> dict:
 
     cfg = config(CONFIG)
     val = validation_set(args.validation, 500000)
-    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit")
-             if getattr(args, k) is not None}
-    coefs["shared_decoder_layers"] = args.shared_decoder_layers
-    curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed),
-              "mixture": run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed, n_experts=args.experts,
-                             mixture_nll=args.mixture_nll, **coefs)}
+    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit",
+                                           "shared_decoder_layers") if getattr(args, k) is not None}
+    curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed)[0]}
+    curves["mixture"], mix_cfg = run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed,
+                                     n_experts=args.experts, mixture_nll=args.mixture_nll, **coefs)
+    coefs.update({k: getattr(mix_cfg, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit",
+                                                   "shared_decoder_layers")})
     target = curves["cnmp"][-1][2]
     print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
     print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' NLL':>14}" for k in curves))

@@ -2,7 +2,8 @@
 after the lift (issue 17).
 
     python bench/mixture_weights.py [--experts 4] [--mixture_nll likelihood] [--gate_entropy_coef C]
-                                    [--gate_commit always|where_decided|redundant] [--steps N] [--save DIR]
+                                    [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S]
+                                    [--steps N] [--save DIR]
 
 Fits the config's CNMP (``configs/cnmp_weights.json``: model, sampling, learning rate, steps, batch size)
 with ``n_experts`` decoders on the 20 demos of ``datasets/cnmp_weights`` with the in-memory API. Then, for
@@ -48,6 +49,8 @@ def main() -> dict:
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
                    help="which contexts the gate-entropy term asks to commit (default: the config's)")
+    p.add_argument("--shared_decoder_layers", type=int, default=None,
+                   help="decoder hidden layers the experts share (default: the config's)")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", default=None, help="write the fitted checkpoint here")
@@ -67,6 +70,8 @@ def main() -> dict:
         model.overrides["gate_entropy_coef"] = args.gate_entropy_coef
     if args.gate_commit is not None:
         model.overrides["gate_commit"] = args.gate_commit
+    if args.shared_decoder_layers is not None:
+        model.overrides["shared_decoder_layers"] = args.shared_decoder_layers
     t0 = time.perf_counter()
     model.fit(data["demos"], task_params=data["task_params"], steps=args.steps or cfg["steps"],
               batch_size=cfg["batch_size"], seed=args.seed, progress=False)
@@ -99,6 +104,7 @@ def main() -> dict:
     res = {
         "mixture_experts": args.experts, "mixture_nll": args.mixture_nll,
         "gate_entropy_coef": model.config.gate_entropy_coef, "gate_commit": model.config.gate_commit,
+        "shared_decoder_layers": model.config.shared_decoder_layers,
         "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
         "gate_before_grasp_mean": [round(float(v), 3) for v in before.mean(0)],

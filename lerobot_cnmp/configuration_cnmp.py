@@ -95,9 +95,12 @@ class CNMPConfig(PreTrainedConfig):
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
             batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
         shared_decoder_layers: With K > 1, how many of ``decoder_layers``' hidden layers the experts share (a
-            trunk over [t_q, γ, r]; each expert keeps the layers after it and its own output layer). 0 (the
-            default): K whole query networks, CNEP's. A trunk trains on every episode instead of each expert on
-            its share, and costs one network's work instead of K (README "Mixture decoder": training cost).
+            trunk over [t_q, γ, r]; each expert keeps the layers after it and its own output layer). None (the
+            default): all hidden layers but the last for K > 1 (2 of the default 3), 0 for K = 1 (a positive
+            value with K = 1 is an error). 0: K whole query networks, CNEP's. A trunk trains on every episode
+            instead of each expert on its share and costs about one network's work instead of K; with it (2
+            of 3) the mixture met every bar of README "Mixture decoder", without it the weights gate and the
+            training cost failed.
         expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
             first step, follow the most probable expert (``"most_probable"``) or one drawn from π
             (``"sample"``, e.g. to spread choices over equally likely modes).
@@ -188,7 +191,7 @@ class CNMPConfig(PreTrainedConfig):
     batch_entropy_coef: float = 0.88
     mixture_nll: str = "likelihood"
     gate_commit: str = "always"
-    shared_decoder_layers: int = 0
+    shared_decoder_layers: int | None = None
     expert_selection: str = "most_probable"
     mode_switch_margin: float = 0.3
 
@@ -276,6 +279,8 @@ class CNMPConfig(PreTrainedConfig):
                              f"{self.batch_entropy_coef}")
         if self.gate_commit not in GATE_COMMIT:
             raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {self.gate_commit!r}")
+        if self.shared_decoder_layers is None:  # the default: all hidden layers but the last for a mixture
+            self.shared_decoder_layers = max(len(self.decoder_layers) - 1, 0) if self.n_experts > 1 else 0
         if not 0 <= self.shared_decoder_layers <= len(self.decoder_layers):
             raise ValueError(f"shared_decoder_layers must be between 0 and the {len(self.decoder_layers)} hidden "
                              f"layers of decoder_layers, got {self.shared_decoder_layers}")

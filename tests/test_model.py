@@ -579,6 +579,10 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
         CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
     with pytest.raises(ValueError, match="n_experts is 1"):
         CNMPConfig(shared_decoder_layers=1)
+    # the default: a mixture shares all hidden layers but the last, K = 1 shares nothing; 0 keeps CNEP's K networks
+    assert CNMPConfig(n_experts=4).shared_decoder_layers == 2 and CNMPConfig().shared_decoder_layers == 0
+    assert CNMPConfig(n_experts=4, decoder_layers=(64,)).shared_decoder_layers == 0
+    assert CNMPConfig(n_experts=4, shared_decoder_layers=0).shared_decoder_layers == 0
     red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0)
     probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
     with pytest.raises(ValueError, match="similarity"):

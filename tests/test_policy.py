@@ -628,5 +628,14 @@ def test_mixture_policy_follows_the_committed_expert_and_loads_bit_identically(m
     cfg = json.loads((ckpt / "config.json").read_text())
     cfg["n_experts"] = 1
     (ckpt / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(Exception) as err:  # the saved shared trunk needs experts (draccus wraps our message)
+        CNMPPolicy.from_pretrained(ckpt)
+    chain, e = [], err.value
+    while e is not None:
+        chain.append(str(e))
+        e = e.__cause__ or e.__context__
+    assert any("n_experts is 1" in m for m in chain), chain
+    cfg["shared_decoder_layers"] = 0
+    (ckpt / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="do not fit"):
         CNMPPolicy.from_pretrained(ckpt)
