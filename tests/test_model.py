@@ -404,7 +404,13 @@ def test_mixture_experts_equal_the_plain_networks(mixture_net):
     torch.testing.assert_close(m.gate_probs(r), torch.softmax(r @ m.gate.weight.T + m.gate.bias, -1))
 
 
-def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net):
+@pytest.mark.parametrize("shared", [0, 1])
+def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net, shared):
+    """Separate experts and a shared trunk (shared_decoder_layers, the config's default for K > 1)."""
+    if shared:
+        torch.manual_seed(0)
+        mixture_net = CNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3,
+                           shared_decoder_layers=shared).eval()
     ctx = random_context(b=3, n=5, g=1)
     q = torch.rand(3, 4)
     perm = torch.tensor([4, 2, 0, 3, 1])
