@@ -101,7 +101,7 @@ class CNMPConfig(PreTrainedConfig):
             instead of each expert on its share and costs about one network's work instead of K. With it (2
             of 3) the mixture met the sine (0.004 on seeds 0 and 1, against 0.022 and 0.052 with 0),
             training-cost (1.66x; with 0 not reached) and shared-obstacle bars of README "Mixture decoder",
-            and the weights-gate bars on 1 training seed of 4.
+            and the weights-gate bars on 1 training seed of 6.
         expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
             first step, follow the most probable expert (``"most_probable"``) or one drawn from π
             (``"sample"``, e.g. to spread choices over equally likely modes).
