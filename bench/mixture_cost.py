@@ -32,6 +32,10 @@ from common import CONFIG, DATASET, api_model, config  # noqa: E402
 from time_to_error import PHASES, first_below, validation_set  # noqa: E402
 
 
+# the mixture's settings given on the command line (None: the config's) and reported as trained
+MIXTURE_OPTIONS = ("gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+
+
 def validation_nll(model, val) -> float:
     """Mean over tasks and path points of -log Σ_k π_k Π_d N(y_d | μ_kd, σ_kd) (K = 1: Eq. 1)."""
     out = []
@@ -85,13 +89,11 @@ def main() -> dict:
 
     cfg = config(CONFIG)
     val = validation_set(args.validation, 500000)
-    coefs = {k: getattr(args, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit",
-                                           "shared_decoder_layers") if getattr(args, k) is not None}
+    coefs = {k: getattr(args, k) for k in MIXTURE_OPTIONS if getattr(args, k) is not None}
     curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed)[0]}
     curves["mixture"], mix_cfg = run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed,
                                      n_experts=args.experts, mixture_nll=args.mixture_nll, **coefs)
-    coefs.update({k: getattr(mix_cfg, k) for k in ("gate_entropy_coef", "batch_entropy_coef", "gate_commit",
-                                                   "shared_decoder_layers")})
+    coefs.update({k: getattr(mix_cfg, k) for k in MIXTURE_OPTIONS})  # the values it trained with
     target = curves["cnmp"][-1][2]
     print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
     print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' NLL':>14}" for k in curves))

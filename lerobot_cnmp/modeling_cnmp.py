@@ -334,23 +334,22 @@ class CNMP(nn.Module):
         if self.n_experts == 1:
             mean, std = self.decode(r, query_phase, task_params)
             return mean[:, None], std[:, None]
-        q = self.decoders
-        t_dim = 1 + 2 * self.frequencies.numel()
+        q, k = self.decoders, self.n_experts
         if hasattr(self, "trunk"):  # shared hidden layers (first layer split as in ``decode``), then each expert's
             h = self._first_layer(self.trunk[0], r, query_phase, task_params)
             h = F.relu(run_mlp(self.trunk, h, start=1))  # [B, M, H]
             b, m, width = h.shape
-            out = q(h.reshape(1, b * m, width).expand(self.n_experts, -1, -1))
-            mean, raw = out.reshape(self.n_experts, b, m, 2 * self.sm_dim).transpose(0, 1).split(self.sm_dim, dim=-1)
-            return mean, self.min_std + F.softplus(raw)
-        w0, b0 = q.weights[0], q.biases[0]  # [K, H, in], [K, H]
-        per_episode = self._inputs([], [r[:, None, :]], task_params, 1)[:, 0]  # [B, G + R]
-        per_episode = torch.einsum("bi,khi->kbh", per_episode, w0[:, :, t_dim:]) + b0[:, None, :]  # [K, B, H]
-        per_query = torch.einsum("bmi,khi->kbmh", self.phase_features(query_phase), w0[:, :, :t_dim])
-        h = per_episode[:, :, None, :] + per_query  # [K, B, M, H]
-        k, b, m, width = h.shape
-        out = q(h.reshape(k, b * m, width), start=1).reshape(k, b, m, 2 * self.sm_dim).transpose(0, 1)
-        mean, raw = out.split(self.sm_dim, dim=-1)
+            out = q(h.reshape(1, b * m, width).expand(k, -1, -1))
+        else:
+            t_dim = 1 + 2 * self.frequencies.numel()
+            w0, b0 = q.weights[0], q.biases[0]  # [K, H, in], [K, H]
+            per_episode = self._inputs([], [r[:, None, :]], task_params, 1)[:, 0]  # [B, G + R]
+            per_episode = torch.einsum("bi,khi->kbh", per_episode, w0[:, :, t_dim:]) + b0[:, None, :]  # [K, B, H]
+            per_query = torch.einsum("bmi,khi->kbmh", self.phase_features(query_phase), w0[:, :, :t_dim])
+            h = per_episode[:, :, None, :] + per_query  # [K, B, M, H]
+            _, b, m, width = h.shape
+            out = q(h.reshape(k, b * m, width), start=1)
+        mean, raw = out.reshape(k, b, m, 2 * self.sm_dim).transpose(0, 1).split(self.sm_dim, dim=-1)
         return mean, self.min_std + F.softplus(raw)
 
     def condition(self, context: Context) -> Tensor:
