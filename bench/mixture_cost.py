@@ -1,7 +1,7 @@
 """Training cost of the mixture decoder (issue 17): time to the single-decoder CNMP's validation NLL on the
 2D obstacle data.
 
-    python bench/mixture_cost.py [--experts 4] [--mixture_nll cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
+    python bench/mixture_cost.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
                                  [--shared_decoder_layers S] [--gate_commit C]
                                  [--steps 3000] [--every 250]
 
@@ -31,9 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import CONFIG, DATASET, api_model, config  # noqa: E402
 from time_to_error import PHASES, first_below, validation_set  # noqa: E402
 
+from lerobot_cnmp.configuration_cnmp import MIXTURE_NLL  # noqa: E402
+
 
 # the mixture's settings given on the command line (None: the config's) and reported as trained
-MIXTURE_OPTIONS = ("gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+MIXTURE_OPTIONS = ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
 
 
 def validation_nll(model, val) -> float:
@@ -72,7 +74,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> tuple
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
+    p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="the mixture's (default: the config's)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
     p.add_argument("--shared_decoder_layers", type=int, default=None,
@@ -92,7 +94,7 @@ def main() -> dict:
     coefs = {k: getattr(args, k) for k in MIXTURE_OPTIONS if getattr(args, k) is not None}
     curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed)[0]}
     curves["mixture"], mix_cfg = run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed,
-                                     n_experts=args.experts, mixture_nll=args.mixture_nll, **coefs)
+                                     n_experts=args.experts, **coefs)
     coefs.update({k: getattr(mix_cfg, k) for k in MIXTURE_OPTIONS})  # the values it trained with
     target = curves["cnmp"][-1][2]
     print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
@@ -100,7 +102,7 @@ def main() -> dict:
     for row in itertools.zip_longest(*curves.values()):
         step = next(r[0] for r in row if r is not None)
         print(f"{step:>6}" + "".join(" " * 26 if r is None else f"{r[1]:>12.1f}{r[2]:>14.3f}" for r in row))
-    res: dict = {"experts": args.experts, "mixture_nll": args.mixture_nll, **coefs, "steps": args.steps,
+    res: dict = {"experts": args.experts, **coefs, "steps": args.steps,
                  "mixture_steps": args.mixture_steps or args.steps,
                  "target_validation_nll": round(target, 3)}
     for k, pts in curves.items():

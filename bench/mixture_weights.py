@@ -1,7 +1,7 @@
 """The weight switch as a change of mode: a mixture CNMP's gate on ``cnmp_weights`` before the grasp and
 after the lift (issue 17).
 
-    python bench/mixture_weights.py [--experts 4] [--mixture_nll likelihood] [--gate_entropy_coef C]
+    python bench/mixture_weights.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef C] [--batch_entropy_coef B]
                                     [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S]
                                     [--steps N] [--save DIR]
 
@@ -12,7 +12,8 @@ an input, only what the F/T sensor reads after the lift), the scripted expert ru
 mixture is conditioned as in ``weights_report.py``: on the start state only (before the grasp: all four zones
 are possible), then also on the sensed SM right after the lift. Reported: the gate's probabilities before
 the grasp (bar: four experts near 1/4 each), the share of masses where one expert has π > 0.9 after the
-lift (bar: >= 95 %), and whether that expert's predicted end lies in the true zone. Last line: one JSON.
+lift (bar: >= 95 %), and whether that expert's predicted end lies in the true zone; ``bars_met`` says
+whether both bars hold ("near 1/4": max |π - 1/K| <= 0.1 over experts and masses). Last line: one JSON.
 """
 
 from __future__ import annotations
@@ -29,7 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, api_model, config  # noqa: E402
 from weights_report import start_and_lift  # noqa: E402
 
+from lerobot_cnmp.configuration_cnmp import MIXTURE_NLL  # noqa: E402
+
 CONFIG = REPO / "configs" / "cnmp_weights.json"
+NEAR_UNIFORM = 0.1  # "near 1/4" before the grasp: every expert's π within 0.1 of 1/K on every mass
 
 
 def unseen_masses() -> list[float]:
@@ -45,8 +49,9 @@ def unseen_masses() -> list[float]:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    p.add_argument("--mixture_nll", default="likelihood", choices=("cnep", "likelihood"))
+    p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="(default: the config's)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
                    help="which contexts the gate-entropy term asks to commit (default: the config's)")
     p.add_argument("--shared_decoder_layers", type=int, default=None,
@@ -65,9 +70,13 @@ def main() -> dict:
     cfg = config(CONFIG)
     data = load_demos(REPO / cfg["dataset"]["root"])
     model = api_model(cfg)
-    model.overrides.update(n_experts=args.experts, mixture_nll=args.mixture_nll)
+    model.overrides["n_experts"] = args.experts
+    if args.mixture_nll is not None:
+        model.overrides["mixture_nll"] = args.mixture_nll
     if args.gate_entropy_coef is not None:
         model.overrides["gate_entropy_coef"] = args.gate_entropy_coef
+    if args.batch_entropy_coef is not None:
+        model.overrides["batch_entropy_coef"] = args.batch_entropy_coef
     if args.gate_commit is not None:
         model.overrides["gate_commit"] = args.gate_commit
     if args.shared_decoder_layers is not None:
@@ -102,8 +111,9 @@ def main() -> dict:
     # which expert each true zone is given to after the lift
     zone_expert = {z: sorted({r["expert"] for r in rows if r["truth"] == z}) for z in range(4)}
     res = {
-        "mixture_experts": args.experts, "mixture_nll": args.mixture_nll,
-        "gate_entropy_coef": model.config.gate_entropy_coef, "gate_commit": model.config.gate_commit,
+        "mixture_experts": args.experts, "mixture_nll": model.config.mixture_nll,
+        "gate_entropy_coef": model.config.gate_entropy_coef,
+        "batch_entropy_coef": model.config.batch_entropy_coef, "gate_commit": model.config.gate_commit,
         "shared_decoder_layers": model.config.shared_decoder_layers,
         "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
@@ -115,12 +125,14 @@ def main() -> dict:
         "committed_expert_zone_accuracy_pct": round(100.0 * np.mean([r["zone"] == r["truth"] for r in rows]), 1),
         "experts_per_zone": zone_expert,
     }
+    res["bars_met"] = {"before_grasp_near_uniform": res["gate_before_grasp_max_abs_dev_from_uniform"] <= NEAR_UNIFORM,
+                       "after_lift_committed": res["after_lift_max_gate_above_0.9_pct"] >= 95.0}
     print(f"before the grasp: mean π {res['gate_before_grasp_mean']} (max |π - 1/K| "
           f"{res['gate_before_grasp_max_abs_dev_from_uniform']}); after the lift: max π > 0.9 on "
           f"{res['after_lift_max_gate_above_0.9_pct']} % of {len(rows)} unseen masses (min {res['after_lift_max_gate_min']}); "
           f"the committed expert ends in the true zone on {res['committed_expert_zone_accuracy_pct']} %; "
           f"experts per zone {zone_expert}; zone of each expert's end before the grasp "
-          f"{res['expert_zones_before_grasp']}; fit {fit_s:.0f} s")
+          f"{res['expert_zones_before_grasp']}; fit {fit_s:.0f} s; bars met: {res['bars_met']}")
     print(json.dumps(res))
     return res
 

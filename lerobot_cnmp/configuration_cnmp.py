@@ -30,6 +30,7 @@ class CNMPAdamConfig(AdamConfig):
 
 
 GATE_COMMIT = ("always", "where_decided", "redundant")  # CNMPConfig.gate_commit (CNMP.mixture_loss)
+MIXTURE_NLL = ("assigned", "likelihood", "cnep")  # CNMPConfig.mixture_nll (CNMP.mixture_loss)
 
 
 def identity_normalization() -> dict[str, NormalizationMode]:
@@ -74,11 +75,17 @@ class CNMPConfig(PreTrainedConfig):
             same representation r and a gate π(r) = softmax(W r + b) over them, trained with
             Σ_k π_k NLL_k + the two entropy terms below (``CNMP.mixture_loss``). Use it when the
             demonstrations have modes the conditions do not decide (a single decoder averages them).
-        mixture_nll: How the experts' NLLs combine through the gate (``CNMP.mixture_loss``): ``"likelihood"``
-            (default: the mixture likelihood -log Σ_k π_k Π_q N_k, π a posterior, e.g. ~1/4 each for four
-            modes the context does not tell apart) or ``"cnep"`` (CNEP's expected NLL Σ_k π_k NLL_k: the gate
+        mixture_nll: How the experts' NLLs combine through the gate (``CNMP.mixture_loss``): ``"assigned"``
+            (default: each episode's expert is decided by the mixture on the empty context, i.e. by the demos'
+            clusters, and every context drawn from it trains that expert and the gate toward it: a context that
+            decides the mode commits, one shared by modes gets their shares; it met the sine, weights (6 seeds
+            of 6) and shared-obstacle bars, not the training-cost one: a decoder pass more per step, and on data
+            without modes the clusters are arbitrary), ``"likelihood"`` (the mixture likelihood
+            -log Σ_k π_k Π_q N_k of each context: π a posterior, but where the context decides the mode one
+            expert may cover two modes while another idles and π splits between them: weights bars on 1 seed
+            of 6; meets the training-cost bar) or ``"cnep"`` (CNEP's expected NLL Σ_k π_k NLL_k: the gate
             learns a hard choice everywhere, and an ambiguous context gets one expert that averages its modes;
-            on the sine benchmark 0.074 against 0.022 for the likelihood, README "Mixture decoder").
+            on the sine benchmark 0.074 against 0.022 for the likelihood). Figures: README "Mixture decoder".
         gate_entropy_coef: Weight of the per-episode gate entropy mean_b H(π_b) / log K, *added* to the loss:
             each context should commit to one expert. CNEP's 7.553, relative to its NLL weight, is 0.62; with
             the likelihood that collapses ambiguous contexts onto one averaging expert (weights task: 0.89 on
@@ -90,8 +97,8 @@ class CNMPConfig(PreTrainedConfig):
             pushed to one expert) or ``"redundant"`` (instead of the entropy, the gate's mass split between
             experts whose predictions for the context agree within their σ: a context whose experts predict
             different modes is left a posterior, one whose experts agree is committed to one of them).
-            README "Mixture decoder" has the weights-task figures of all three; none meets both weights bars
-            (``"redundant"``: 0 % of masses above 0.9 after the lift).
+            README "Mixture decoder" has the weights-task figures of all three with the likelihood; none meets
+            both weights bars there (``"redundant"``: 0 % of masses above 0.9 after the lift).
         batch_entropy_coef: Weight of the batch's gate entropy H(mean_b π_b) / log K, *subtracted*: over a
             batch every expert should be used (no expert left untrained). CNEP's 10.672, relative: 0.88.
         shared_decoder_layers: With K > 1, how many of ``decoder_layers``' hidden layers the experts share (a
@@ -101,7 +108,7 @@ class CNMPConfig(PreTrainedConfig):
             instead of each expert on its share and costs about one network's work instead of K. With it (2
             of 3) the mixture met the sine (0.004 on seeds 0 and 1, against 0.022 and 0.052 with 0),
             training-cost (1.66x; with 0 not reached) and shared-obstacle bars of README "Mixture decoder",
-            and the weights-gate bars on 1 training seed of 6.
+            and the weights-gate bars on 1 training seed of 6 (with the likelihood; figures of 2026-12-04).
         expert_selection: Execution with K > 1 (:class:`lerobot_cnmp.modes.ModeSelector`): at an episode's
             first step, follow the most probable expert (``"most_probable"``) or one drawn from π
             (``"sample"``, e.g. to spread choices over equally likely modes).
@@ -190,7 +197,7 @@ class CNMPConfig(PreTrainedConfig):
     n_experts: int = 1
     gate_entropy_coef: float = 0.2
     batch_entropy_coef: float = 0.88
-    mixture_nll: str = "likelihood"
+    mixture_nll: str = "assigned"
     gate_commit: str = "always"
     shared_decoder_layers: int | None = None
     expert_selection: str = "most_probable"
@@ -288,8 +295,8 @@ class CNMPConfig(PreTrainedConfig):
         if self.shared_decoder_layers and self.n_experts == 1:
             raise ValueError(f"shared_decoder_layers={self.shared_decoder_layers} shares decoder layers between "
                              "experts, but n_experts is 1: set n_experts > 1 or shared_decoder_layers 0")
-        if self.mixture_nll not in ("cnep", "likelihood"):
-            raise ValueError(f"mixture_nll must be 'cnep' or 'likelihood', got {self.mixture_nll!r}")
+        if self.mixture_nll not in MIXTURE_NLL:
+            raise ValueError(f"mixture_nll must be one of {MIXTURE_NLL}, got {self.mixture_nll!r}")
         if self.expert_selection not in ("most_probable", "sample"):
             raise ValueError(f"expert_selection must be 'most_probable' or 'sample', got {self.expert_selection!r}")
         if not 0.0 <= self.mode_switch_margin < 1.0:

@@ -457,20 +457,70 @@ def test_mixture_loss_forms(mixture_net, form):
     assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
 
 
+def test_mixture_loss_assigned(mixture_net):
+    """assigned: the unconditional mixture's likelihood (experts and gate on r = 0) plus each context's experts
+    and gate trained on the episode's expert ρ from it (no gradient through ρ); batch entropy on the
+    unconditional per-query posterior. Without the empty-context terms it is a clear error."""
+    ctx = random_context(b=4, g=1)
+    targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
+    targets.valid[:, 0] = True
+    default = mixture_net.mixture_nll
+    mixture_net.mixture_nll = "assigned"
+    try:
+        loss, info = mixture_net.training_loss(ctx, targets)
+        with pytest.raises(ValueError, match="empty context"):
+            mixture_net.mixture_loss(torch.zeros(4, 3), torch.full((4, 3), 1 / 3), torch.tensor([6, 6, 6, 6]))
+    finally:
+        mixture_net.mixture_nll = default
+    means, stds, probs = mixture_net.mixture(ctx, targets.phase)
+    r0 = torch.zeros(4, 32)
+    means0, stds0 = mixture_net.decode_experts(r0, targets.phase, ctx.task_params)
+    probs0 = mixture_net.gate_probs(r0)
+    n = targets.valid.sum(-1).float()
+    nll_bk, nll0_bk = (CNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
+    log_joint = probs0.log() - nll0_bk * n[:, None]
+    rho = torch.softmax(log_joint, -1)
+    want_nll = -(torch.logsumexp(log_joint, -1) / n).mean() + (rho * (nll_bk - probs.log())).sum(-1).mean()
+    h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
+    tempered = torch.softmax(probs0.log() - nll0_bk, -1)
+    want = (want_nll + mixture_net.gate_entropy_coef * h(probs).mean() / np.log(3)
+            - mixture_net.batch_entropy_coef * h(tempered.mean(0)) / np.log(3))
+    torch.testing.assert_close(loss, want)
+    assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
+    assert set(info) >= {"prior_nll", "assigned_nll", "min_expert_share"}
+
+
+def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
+    net = CNMP(sm_dim=2, n_experts=3, mixture_nll="assigned")
+    log_joint = torch.tensor([[0.0, -50.0, -9.0], [-40.0, 0.0, -3.0], [0.0, -1.0, -30.0], [-2.0, 0.0, -60.0]])
+    net.eval()
+    assert torch.equal(net.revive_starving(log_joint), log_joint)  # evaluation: untouched, nothing tracked
+    torch.testing.assert_close(net.expert_share, torch.full((3,), 1 / 3))
+    net.train()
+    assert torch.equal(net.revive_starving(log_joint), log_joint)  # every expert's running share is >= 1/(4K)
+    torch.testing.assert_close(net.expert_share, 0.99 * torch.full((3,), 1 / 3) + 0.01 * torch.tensor([0.5, 0.5, 0]))
+    net.expert_share.copy_(torch.tensor([0.5, 0.5, 0.05]))  # expert 2 starves: it gets episode 1 (gap 3)
+    out = net.revive_starving(log_joint)
+    assert torch.equal(torch.softmax(out, -1)[1], torch.tensor([0.0, 0.0, 1.0]))
+    assert torch.equal(out[[0, 2, 3]], log_joint[[0, 2, 3]])
+    assert "expert_share" not in net.state_dict()  # training state only: checkpoints are unchanged
+
+
 def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_its_gate_is(mixture_net):
     """``where_decided``: the per-episode entropy term is weighted by 1 - H(π_b)/log K (no gradient through the
     weight): a uniform gate gets no commitment pressure, a one-hot one the full term; ``always``: weight 1."""
     nll_bk = torch.zeros(3, 3)
     probs = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [0.6, 0.3, 0.1], [0.98, 0.01, 0.01]], requires_grad=True)
     h = -(probs * probs.log()).sum(-1) / np.log(3)
-    default = mixture_net.gate_commit
+    default, default_nll = mixture_net.gate_commit, mixture_net.mixture_nll
     assert default == CNMPConfig.gate_commit == "always"
+    mixture_net.mixture_nll = "likelihood"  # the commitment term does not depend on the NLL's form
     try:
         _, always = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
         mixture_net.gate_commit = "where_decided"
         loss, weighted = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
     finally:
-        mixture_net.gate_commit = default
+        mixture_net.gate_commit, mixture_net.mixture_nll = default, default_nll
     assert always["gate_entropy"] == pytest.approx(h.mean().item(), rel=1e-5)
     assert weighted["gate_entropy"] == pytest.approx(((1 - h) * h).mean().item(), rel=1e-5)
     assert weighted["gate_commit_weight"] == pytest.approx((1 - h).mean().item(), rel=1e-5)
@@ -479,9 +529,10 @@ def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_
     coef = mixture_net.gate_entropy_coef
     try:
         mixture_net.gate_entropy_coef = 0.0
+        mixture_net.mixture_nll = "likelihood"
         no_term, _ = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
     finally:
-        mixture_net.gate_entropy_coef = coef
+        mixture_net.gate_entropy_coef, mixture_net.mixture_nll = coef, default_nll
     (g_none,) = torch.autograd.grad(no_term, probs)
     torch.testing.assert_close(g_decided[0], g_none[0])
     assert not torch.allclose(g_decided[2], g_none[2])
@@ -537,6 +588,24 @@ def test_mixture_separates_the_two_modes(fitted_mixture):
     np.testing.assert_allclose(probs.sum(), 1.0, rtol=1e-6)
 
 
+def test_assigned_mixture_gives_each_mode_its_expert_and_shares_at_the_shared_start():
+    """mixture_nll="assigned" on the two-mode toy: a mid point commits the gate (> 0.9) to the expert of its
+    mode, the two modes to different experts; the shared start, which does not name a mode, gets both."""
+    torch.manual_seed(0)
+    model = CNMPModel(encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=2, mixture_nll="assigned").fit(
+        toy_demos(n=16), steps=800, batch_size=16, progress=False)
+    q = np.linspace(0, 1, 50)
+    chosen = []
+    for sign in (1, -1):
+        means, _, probs = model.predict_mixture(q, [Condition(0.5, (0.5, 0.4 * sign))])
+        k = int(probs.argmax())
+        assert probs[k] > 0.9 and sign * means[k, 25, 1] > 0.25
+        chosen.append(k)
+    assert chosen[0] != chosen[1]
+    _, _, probs = model.predict_mixture(q, [Condition(0.0, (0.0, 0.0))])
+    assert probs.min() > 0.25, probs
+
+
 def test_predict_a_chosen_expert_and_bad_expert(fitted_mixture):
     q = np.linspace(0, 1, 9)
     conds = [Condition(0.0, (0.0, 0.0))]
@@ -589,7 +658,8 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
     assert CNMPConfig(n_experts=4).shared_decoder_layers == 2 and CNMPConfig().shared_decoder_layers == 0
     assert CNMPConfig(n_experts=4, decoder_layers=(64,)).shared_decoder_layers == 0
     assert CNMPConfig(n_experts=4, shared_decoder_layers=0).shared_decoder_layers == 0
-    red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0)
+    red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0,
+               mixture_nll="likelihood")
     probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
     with pytest.raises(ValueError, match="similarity"):
         red.mixture_loss(nll, probs, torch.tensor([4]))
