@@ -453,9 +453,7 @@ class CNMP(nn.Module):
 
           with ρ_bk = π⁰_k Π_q N⁰_bkq / Σ_l π⁰_l Π_q N⁰_blq (no gradient; ``revive_starving`` gives an idle
           expert an episode). The gate's cross-entropy to ρ counts once per episode, one label each, not
-          divided by n_b as the likelihood's log π is: divided, the gate learned too slowly (two-mode toy,
-          800 steps: a point naming the mode got π 0.58, the shared start 0.97 on one expert; undivided:
-          1.0, and 0.48 / 0.52). The modes are the clusters of the unconditional mixture; a context that decides
+          divided by n_b as the likelihood's log π is: so divided, the gate learned too slowly. The modes are the clusters of the unconditional mixture; a context that decides
           the mode gets π ≈ one-hot on its episode's expert, one shared by modes the share of its episodes
           among them (≈ 1/4 each before the weights task's grasp). The batch entropy then acts on the
           unconditional mixture's per-query posterior softmax_k(log π⁰_k - NLL⁰_bk), which keeps a gradient
