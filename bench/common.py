@@ -106,6 +106,15 @@ def _matching_config(train_cfg: dict) -> Path | None:
     return None
 
 
+# the mixture decoder's settings a mixture bench takes on the command line (None: the config's) and reports
+MIXTURE_SETTINGS = ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+
+
+def mixture_settings(args) -> dict:
+    """The ``MIXTURE_SETTINGS`` given on the command line (those not None), as CNMP config overrides."""
+    return {k: getattr(args, k) for k in MIXTURE_SETTINGS if getattr(args, k) is not None}
+
+
 # CNMP settings that change what is trained; a run whose values differ from its committed config's (or, where
 # the config does not set them, from CNMPConfig's defaults) was given them on the command line
 _TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll",

@@ -28,14 +28,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONFIG, DATASET, api_model, config  # noqa: E402
+from common import CONFIG, DATASET, MIXTURE_SETTINGS, api_model, config, mixture_settings  # noqa: E402
 from time_to_error import PHASES, first_below, validation_set  # noqa: E402
 
-from lerobot_cnmp.configuration_cnmp import MIXTURE_NLL  # noqa: E402
-
-
-# the mixture's settings given on the command line (None: the config's) and reported as trained
-MIXTURE_OPTIONS = ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
 
 
 def validation_nll(model, val) -> float:
@@ -80,7 +76,7 @@ def main() -> dict:
     p.add_argument("--shared_decoder_layers", type=int, default=None,
                    help="the mixture's decoder hidden layers shared by its experts (default: the config's, "
                         "CNMPConfig.shared_decoder_layers)")
-    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"))
+    p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
                    help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")
@@ -91,11 +87,11 @@ def main() -> dict:
 
     cfg = config(CONFIG)
     val = validation_set(args.validation, 500000)
-    coefs = {k: getattr(args, k) for k in MIXTURE_OPTIONS if getattr(args, k) is not None}
+    coefs = mixture_settings(args)
     curves = {"cnmp": run(cfg, args.steps, args.every, val, args.seed)[0]}
     curves["mixture"], mix_cfg = run(cfg, args.mixture_steps or args.steps, args.every, val, args.seed,
                                      n_experts=args.experts, **coefs)
-    coefs.update({k: getattr(mix_cfg, k) for k in MIXTURE_OPTIONS})  # the values it trained with
+    coefs.update({k: getattr(mix_cfg, k) for k in MIXTURE_SETTINGS})  # the values it trained with
     target = curves["cnmp"][-1][2]
     print(f"validation NLL per path point (fresh tasks, start + via point) every {args.every} steps")
     print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' NLL':>14}" for k in curves))

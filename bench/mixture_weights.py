@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, api_model, config  # noqa: E402
+from common import REPO, api_model, config, mixture_settings  # noqa: E402
 from weights_report import start_and_lift  # noqa: E402
 
-from lerobot_cnmp.configuration_cnmp import MIXTURE_NLL  # noqa: E402
+from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 NEAR_UNIFORM = 0.1  # "near 1/4" before the grasp: every expert's π within 0.1 of 1/K on every mass
@@ -52,7 +52,7 @@ def main() -> dict:
     p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="(default: the config's)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
+    p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT,
                    help="which contexts the gate-entropy term asks to commit (default: the config's)")
     p.add_argument("--shared_decoder_layers", type=int, default=None,
                    help="decoder hidden layers the experts share (default: the config's)")
@@ -70,17 +70,7 @@ def main() -> dict:
     cfg = config(CONFIG)
     data = load_demos(REPO / cfg["dataset"]["root"])
     model = api_model(cfg)
-    model.overrides["n_experts"] = args.experts
-    if args.mixture_nll is not None:
-        model.overrides["mixture_nll"] = args.mixture_nll
-    if args.gate_entropy_coef is not None:
-        model.overrides["gate_entropy_coef"] = args.gate_entropy_coef
-    if args.batch_entropy_coef is not None:
-        model.overrides["batch_entropy_coef"] = args.batch_entropy_coef
-    if args.gate_commit is not None:
-        model.overrides["gate_commit"] = args.gate_commit
-    if args.shared_decoder_layers is not None:
-        model.overrides["shared_decoder_layers"] = args.shared_decoder_layers
+    model.overrides.update(n_experts=args.experts, **mixture_settings(args))
     t0 = time.perf_counter()
     model.fit(data["demos"], task_params=data["task_params"], steps=args.steps or cfg["steps"],
               batch_size=cfg["batch_size"], seed=args.seed, progress=False)

@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import mixture_settings
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 200
@@ -85,7 +86,6 @@ def score(trajectories, demos) -> tuple[float, float]:
     return float(errors.mean()), float(errors.std())
 
 
-MIXTURE_SETTINGS = ("mixture_nll", "gate_entropy_coef", "batch_entropy_coef", "shared_decoder_layers", "gate_commit")
 
 
 def main() -> dict:
@@ -124,8 +124,7 @@ def main() -> dict:
     mixture, mix_fit_s = None, None
     if args.experts > 0:
         t0 = time.perf_counter()
-        settings = {k: getattr(args, k) for k in MIXTURE_SETTINGS
-                    if getattr(args, k) is not None}
+        settings = mixture_settings(args)
         mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts, **settings).fit(
             demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
         )

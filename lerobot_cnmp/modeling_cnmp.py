@@ -453,9 +453,10 @@ class CNMP(nn.Module):
 
           with ρ_bk = π⁰_k Π_q N⁰_bkq / Σ_l π⁰_l Π_q N⁰_blq (no gradient; ``revive_starving`` gives an idle
           expert an episode). The gate's cross-entropy to ρ counts once per episode, one label each, not
-          divided by n_b as the likelihood's log π is: so divided, the gate learned too slowly. The modes are the clusters of the unconditional mixture; a context that decides
-          the mode gets π ≈ one-hot on its episode's expert, one shared by modes the share of its episodes
-          among them (≈ 1/4 each before the weights task's grasp). The batch entropy then acts on the
+          divided by n_b as the likelihood's log π is: so divided, the gate learned too slowly. The modes are
+          the clusters of the unconditional mixture; a context that decides the mode gets π ≈ one-hot on its
+          episode's expert, one shared by modes the share of its episodes among them (≈ 1/4 each before the
+          weights task's grasp). The batch entropy then acts on the
           unconditional mixture's per-query posterior softmax_k(log π⁰_k - NLL⁰_bk), which keeps a gradient
           where the whole episode's posterior is one-hot. One more pass of the decoder per step.
 
@@ -511,7 +512,7 @@ class CNMP(nn.Module):
     def revive_starving(self, log_joint: Tensor, momentum: float = 0.99) -> Tensor:
         """The assignment scores log π⁰_k Π_q N⁰_bk [B, K] with k-means' remedy for an empty cluster: in training,
         each expert's share of the episodes is tracked (a running mean of the hard assignments, ``momentum``
-        per step); an expert whose share falls below 1 / (4K) is given, in this batch, the episode it fits
+        per call: one per ``training_loss``, two per step with ``feedback_draw_weight`` > 0); an expert whose share falls below 1 / (4K) is given, in this batch, the episode it fits
         least badly relative to that episode's expert (the smallest gap max_l s_bl - s_bk). Trained on it,
         it takes that mode over or drops it. Without this an expert that loses every episode early (the hard
         posterior of a whole episode leaves it no gradient) stays idle while another covers two modes."""
