@@ -2,7 +2,7 @@
 2D obstacle data.
 
     python bench/mixture_cost.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
-                                 [--shared_decoder_layers S] [--gate_commit C]
+                                 [--shared_decoder_layers S] [--gate_commit C] [--assignment_draws P]
                                  [--steps 3000] [--every 250]
 
 Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
@@ -77,6 +77,8 @@ def main() -> dict:
                    help="the mixture's decoder hidden layers shared by its experts (default: the config's, "
                         "CNMPConfig.shared_decoder_layers)")
     p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT)
+    p.add_argument("--assignment_draws", type=int, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
                    help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")

@@ -2,7 +2,7 @@
 after the lift (issue 17).
 
     python bench/mixture_weights.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef C] [--batch_entropy_coef B]
-                                    [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S]
+                                    [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S] [--assignment_draws P]
                                     [--steps N] [--save DIR]
 
 Fits the config's CNMP (``configs/cnmp_weights.json``: model, sampling, learning rate, steps, batch size)
@@ -50,6 +50,8 @@ def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="(default: the config's)")
+    p.add_argument("--assignment_draws", type=int, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT,

@@ -1,7 +1,7 @@
 """Multimodal sine benchmark, after the published protocol of CNEP (Yildirim & Ugur, arXiv 2402.08424).
 
     python bench/sine_benchmark.py [--steps 4000] [--seed 0] [--experts 4] [--shared_decoder_layers S]
-                                   [--gate_commit C] [--gate_entropy_coef G]
+                                   [--gate_commit C] [--gate_entropy_coef G] [--mixture_nll M] [--assignment_draws P]
 
 Data (as in the CNEP code, ``compare_cneps_on_4_sines_abl.py``): 4 modes x 32 demos of 200 steps on
 x = linspace(0, 1, 200). Mode i = 0..3: y = (sin((x + 0.2 (i+1)) · (i+1)π/2 + φ) + ε + 1) / 2, with a
@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import mixture_settings
+from common import MIXTURE_SETTINGS, mixture_settings
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 200
@@ -95,6 +95,8 @@ def main() -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
     p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
+    p.add_argument("--assignment_draws", type=int, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
     p.add_argument("--shared_decoder_layers", type=int, default=None,

@@ -226,6 +226,7 @@ class CNMP(nn.Module):
         nll_beta: float = 0.0,
         gate_commit: str = "always",
         shared_decoder_layers: int = 0,
+        assignment_draws: int = 0,
     ):
         super().__init__()
         if int(n_experts) != n_experts or n_experts < 1:
@@ -239,6 +240,9 @@ class CNMP(nn.Module):
                              f"n_experts={n_experts}, nll_beta={nll_beta}")
         self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
         self.mixture_nll = mixture_nll
+        if int(assignment_draws) != assignment_draws or assignment_draws < 0:
+            raise ValueError(f"assignment_draws must be an integer >= 0, got {assignment_draws}")
+        self.assignment_draws = int(assignment_draws)
         if gate_commit not in GATE_COMMIT:
             raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {gate_commit!r}")
         self.gate_commit = gate_commit
@@ -403,10 +407,13 @@ class CNMP(nn.Module):
         return torch.exp(-(diff / var).mean(dim=-1).amax(dim=-1))
 
     def mixture_loss(self, nll_bk: Tensor, probs: Tensor, n_queries: Tensor,
-                     similarity: Tensor | None = None, prior: tuple[Tensor, Tensor] | None = None
+                     similarity: Tensor | None = None, prior: tuple[Tensor, ...] | None = None
                      ) -> tuple[Tensor, dict]:
         """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
-        the gate's π_b [B, K] and each episode's number of valid queries n_b [B]:
+        the gate's π_b [B, K] and each episode's number of valid queries n_b [B] (``prior``, for
+        ``"assigned"``: the empty-context NLL⁰ [B, K] and π⁰ [B, K]; or, one per episode of B / E draws
+        (``assignment_draws``), NLL⁰ [E, K], π⁰ [E, K] and the n of its queries [E], ρ then repeated over
+        the episode's draws):
 
             L = NLL_mix
                 + gate_entropy_coef  · mean_b c_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
@@ -481,10 +488,13 @@ class CNMP(nn.Module):
         else:  # "assigned"
             if prior is None:
                 raise ValueError("mixture_nll='assigned' needs the experts' NLLs and gate on the empty context (prior)")
-            prior_nll_bk, prior_probs = prior
-            log_joint = prior_probs.clamp(min=1e-12).log() - prior_nll_bk * n[:, None]  # log π⁰_k Π N⁰_k
-            prior_nll = -(torch.logsumexp(log_joint, dim=-1) / n).mean()
+            prior_nll_bk, prior_probs, *rest = prior
+            n0 = n if not rest else rest[0].to(nll_bk.dtype).clamp(min=1.0)  # the prior's queries per row
+            log_joint = prior_probs.clamp(min=1e-12).log() - prior_nll_bk * n0[:, None]  # log π⁰_k Π N⁰_k
+            prior_nll = -(torch.logsumexp(log_joint, dim=-1) / n0).mean()
             rho = torch.softmax(self.revive_starving(log_joint.detach()), dim=-1)
+            if rho.shape[0] != nll_bk.shape[0]:  # one assignment per episode, shared by its draws
+                rho = rho.repeat_interleave(nll_bk.shape[0] // rho.shape[0], dim=0)
             assigned = (rho * (nll_bk - probs.clamp(min=1e-12).log())).sum(dim=-1).mean()
             nll = prior_nll + assigned
             batch_probs = torch.softmax(prior_probs.clamp(min=1e-12).log() - prior_nll_bk, dim=-1)
@@ -531,8 +541,9 @@ class CNMP(nn.Module):
                 taken[b] = True
         return out
 
-    def training_loss(self, context: Context, targets: Targets) -> tuple[Tensor, dict]:
-        """One training step's loss on a drawn (context, targets) pair, with monitoring figures."""
+    def training_loss(self, context: Context, targets: Targets, draws: int = 1) -> tuple[Tensor, dict]:
+        """One training step's loss on a drawn (context, targets) pair, with monitoring figures. ``draws``: rows
+        b * draws .. b * draws + draws - 1 are draws of one episode (``assignment_draws``)."""
         if self.n_experts > 1:
             r = self.condition(context)
             means, stds = self.decode_experts(r, targets.phase, context.task_params)
@@ -540,9 +551,12 @@ class CNMP(nn.Module):
             similarity = self.expert_similarity(r, context.task_params) if self.gate_commit == "redundant" else None
             prior = None
             if self.mixture_nll == "assigned":  # the experts and gate on the empty context: r = 0
-                r0 = torch.zeros_like(r)
-                means0, stds0 = self.decode_experts(r0, targets.phase, context.task_params)
-                prior = (self.nll_per_expert(means0, stds0, targets), self.gate_probs(r0))
+                p = self.assignment_draws
+                if not p:  # each draw's expert from its own queries
+                    means0, stds0, probs0 = self.unconditional(targets.phase, context.task_params, r.shape[-1])
+                    prior = (self.nll_per_expert(means0, stds0, targets), probs0)
+                else:  # each episode's expert from the queries of its first p draws
+                    prior = self._episode_prior(targets, context.task_params, draws, min(p, draws), r.shape[-1])
             loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1),
                                            similarity, prior)
             mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
@@ -555,6 +569,28 @@ class CNMP(nn.Module):
             mae = ((mean - targets.values).abs() * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
         return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
+
+    def _episode_prior(self, targets: Targets, task_params: Tensor | None, draws: int, p: int, r_dim: int
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+        """The empty-context experts' NLL per episode (per query, over the queries of its first ``p`` of
+        ``draws`` draws) [E, K], the empty-context gate [E, K] and the number of those queries [E]."""
+        b = targets.phase.shape[0]
+        if b % draws:
+            raise ValueError(f"{b} draws are not a whole number of episodes of {draws} draws each")
+        rows = torch.arange(b, device=targets.phase.device).reshape(b // draws, draws)[:, :p].reshape(-1)
+        sub = Targets(targets.phase[rows], targets.values[rows], targets.valid[rows])
+        means0, stds0, probs0 = self.unconditional(sub.phase, None if task_params is None else task_params[rows], r_dim)
+        n_row = sub.valid.sum(-1).to(means0.dtype)
+        total = (self.nll_per_expert(means0, stds0, sub) * n_row[:, None]).reshape(b // draws, p, -1).sum(1)
+        n_ep = n_row.reshape(b // draws, p).sum(1)
+        return total / n_ep.clamp(min=1.0)[:, None], probs0[::p], n_ep
+
+    def unconditional(self, query_phase: Tensor, task_params: Tensor | None, r_dim: int) -> tuple[Tensor, Tensor, Tensor]:
+        """The unconditional mixture: the experts μ⁰_k, σ⁰_k [B, K, M, D] and gate π⁰ [B, K] on the empty context
+        (r = 0; γ kept)."""
+        r0 = torch.zeros(query_phase.shape[0], r_dim, dtype=query_phase.dtype, device=query_phase.device)
+        means0, stds0 = self.decode_experts(r0, query_phase, task_params)
+        return means0, stds0, self.gate_probs(r0)
 
 
 def entropy(p: Tensor) -> Tensor:
@@ -732,6 +768,7 @@ class CNMPPolicy(PreTrainedPolicy):
             nll_beta=config.nll_beta,
             gate_commit=config.gate_commit,
             shared_decoder_layers=config.shared_decoder_layers,
+            assignment_draws=config.assignment_draws,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec
@@ -849,11 +886,11 @@ class CNMPPolicy(PreTrainedPolicy):
             episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
             self.sensed_only_mask, c.sensed_obs_prob,
         )
-        loss, info = self.model.training_loss(context, targets)
+        loss, info = self.model.training_loss(context, targets, c.draws_per_sample)
         w = c.feedback_draw_weight
         if w > 0:
             fb_draws = self.feedback_draws(batch["episode_index"], generator, inputs=episodes.task_params)
-            fb_loss, fb_info = self.model.training_loss(*fb_draws)
+            fb_loss, fb_info = self.model.training_loss(*fb_draws, c.draws_per_sample)
             info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
             loss = (1.0 - w) * loss + w * fb_loss
             info["nll"] = loss.item()

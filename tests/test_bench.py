@@ -99,3 +99,15 @@ def test_mode_of_reads_the_side_of_the_obstacle_where_the_path_crosses_it():
     # the ends do not decide: a path that starts and ends above the obstacle's centre line but dips under it
     dip = np.stack([x, 0.05 - 0.3 * np.sin(np.pi * x)], 1)
     assert mode_of(dip) == "under"
+
+
+def test_sine_benchmark_runs_end_to_end_with_the_mixture(tmp_path, monkeypatch):
+    """The bench's whole path (CNMP, the mixture with a setting given, ProMP, plots, JSON) on a few steps:
+    its figures are the README's, so it must run as documented (a missing import once broke it)."""
+    monkeypatch.setattr(sys, "argv", ["sine_benchmark.py", "--steps", "3", "--batch_size", "4", "--experts", "2",
+                                      "--assignment_draws", "1", "--plot", str(tmp_path / "a.png"),
+                                      "--mixture_plot", str(tmp_path / "b.png")])
+    res = sine.main()
+    assert res["mixture_experts"] == 2 and res["mixture_settings"]["assignment_draws"] == 1
+    assert {"sine_error_cnmp", "sine_error_mixture", "sine_error_promp"} <= set(res)
+    assert (tmp_path / "a.png").stat().st_size > 0 and (tmp_path / "b.png").stat().st_size > 0

@@ -490,6 +490,47 @@ def test_mixture_loss_assigned(mixture_net):
     assert set(info) >= {"prior_nll", "assigned_nll", "min_expert_share"}
 
 
+@pytest.mark.parametrize("p", [1, 2])
+def test_assignment_draws_decides_one_expert_per_episode_from_its_first_draws(mixture_net, p):
+    """assignment_draws = p: the empty-context pass runs on each episode's first p draws only; the episode's
+    ρ (from all their queries) is shared by every draw of it. 6 rows = 2 episodes x 3 draws."""
+    ctx = random_context(b=6, g=1)
+    targets = Targets(torch.rand(6, 5), torch.randn(6, 5, 2), torch.rand(6, 5) < 0.8)
+    targets.valid[:, 0] = True
+    mixture_net.mixture_nll, mixture_net.assignment_draws = "assigned", p
+    try:
+        loss, info = mixture_net.training_loss(ctx, targets, draws=3)
+        with pytest.raises(ValueError, match="whole number of episodes"):
+            mixture_net.training_loss(ctx, targets, draws=4)
+    finally:
+        mixture_net.mixture_nll, mixture_net.assignment_draws = "assigned", 0
+    means, stds, probs = mixture_net.mixture(ctx, targets.phase)
+    r0 = torch.zeros(6, 32)
+    means0, stds0 = mixture_net.decode_experts(r0, targets.phase, ctx.task_params)
+    probs0 = mixture_net.gate_probs(r0)[:2]
+    n = targets.valid.sum(-1).float()
+    nll_bk, nll0_bk = (CNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
+    first = [e * 3 + j for e in range(2) for j in range(p)]  # the rows the empty-context pass sees
+    sum0 = (nll0_bk * n[:, None])[first].reshape(2, p, 3).sum(1)  # [E, K]: -log Π_q N⁰ over those queries
+    n0 = n[first].reshape(2, p).sum(1)
+    log_joint = probs0.log() - sum0
+    rho = torch.softmax(log_joint, -1).repeat_interleave(3, 0)
+    want_nll = -(torch.logsumexp(log_joint, -1) / n0).mean() + (rho * (nll_bk - probs.log())).sum(-1).mean()
+    h = lambda q: -(q * q.log()).sum(-1)  # noqa: E731
+    tempered = torch.softmax(probs0.log() - sum0 / n0[:, None], -1)
+    want = (want_nll + mixture_net.gate_entropy_coef * h(probs).mean() / np.log(3)
+            - mixture_net.batch_entropy_coef * h(tempered.mean(0)) / np.log(3))
+    torch.testing.assert_close(loss, want)
+    assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
+
+
+def test_assignment_draws_must_be_a_count():
+    with pytest.raises(ValueError, match="assignment_draws"):
+        CNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
+    with pytest.raises(ValueError, match="assignment_draws"):
+        CNMPConfig(n_experts=2, assignment_draws=1.5)
+
+
 def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
     net = CNMP(sm_dim=2, n_experts=3, mixture_nll="assigned")
     log_joint = torch.tensor([[0.0, -50.0, -9.0], [-40.0, 0.0, -3.0], [0.0, -1.0, -30.0], [-2.0, 0.0, -60.0]])
