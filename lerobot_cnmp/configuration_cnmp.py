@@ -324,6 +324,10 @@ class CNMPConfig(PreTrainedConfig):
                 or self.assignment_draws < 0:
             raise ValueError(f"assignment_draws must be an integer >= 0, got {self.assignment_draws}")
         self.assignment_draws = int(self.assignment_draws)
+        if self.assignment_draws and (self.n_experts == 1 or self.mixture_nll != "assigned"):
+            raise ValueError(f"assignment_draws decides each episode's expert for mixture_nll='assigned' with "
+                             f"n_experts > 1; got n_experts={self.n_experts}, mixture_nll={self.mixture_nll!r}: "
+                             f"set assignment_draws 0")
         if self.draws_per_sample < 1:
             raise ValueError(f"draws_per_sample must be >= 1, got {self.draws_per_sample}")
         if not 0.0 <= self.feedback_draw_weight <= 1.0:

@@ -529,6 +529,10 @@ def test_assignment_draws_must_be_a_count():
         CNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
     with pytest.raises(ValueError, match="assignment_draws"):
         CNMPConfig(n_experts=2, assignment_draws=1.5)
+    for bad in ({"n_experts": 1}, {"n_experts": 2, "mixture_nll": "likelihood"}):  # it would do nothing
+        with pytest.raises(ValueError, match="assignment_draws decides"):
+            CNMPConfig(assignment_draws=1, **bad)
+    assert CNMPConfig(n_experts=2, assignment_draws=1).assignment_draws == 1
 
 
 def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
