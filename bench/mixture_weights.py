@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, api_model, config, mixture_settings  # noqa: E402
+from common import MIXTURE_SETTINGS, REPO, api_model, config, mixture_settings  # noqa: E402
 from weights_report import start_and_lift  # noqa: E402
 
 from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
@@ -103,10 +103,7 @@ def main() -> dict:
     # which expert each true zone is given to after the lift
     zone_expert = {z: sorted({r["expert"] for r in rows if r["truth"] == z}) for z in range(4)}
     res = {
-        "mixture_experts": args.experts, "mixture_nll": model.config.mixture_nll,
-        "gate_entropy_coef": model.config.gate_entropy_coef,
-        "batch_entropy_coef": model.config.batch_entropy_coef, "gate_commit": model.config.gate_commit,
-        "shared_decoder_layers": model.config.shared_decoder_layers,
+        "mixture_experts": args.experts, **{k: getattr(model.config, k) for k in MIXTURE_SETTINGS},
         "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
         "gate_before_grasp_mean": [round(float(v), 3) for v in before.mean(0)],

@@ -86,8 +86,6 @@ def score(trajectories, demos) -> tuple[float, float]:
     return float(errors.mean()), float(errors.std())
 
 
-
-
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--steps", type=int, default=4000, help="CNMP training steps (batch 32)")

@@ -411,9 +411,8 @@ class CNMP(nn.Module):
                      ) -> tuple[Tensor, dict]:
         """The mixture's loss from each expert's Eq. 1 NLL_bk on each episode b [B, K] (``nll_per_expert``),
         the gate's π_b [B, K] and each episode's number of valid queries n_b [B] (``prior``, for
-        ``"assigned"``: the empty-context NLL⁰ [B, K] and π⁰ [B, K]; or, one per episode of B / E draws
-        (``assignment_draws``), NLL⁰ [E, K], π⁰ [E, K] and the n of its queries [E], ρ then repeated over
-        the episode's draws):
+        ``"assigned"``: the empty context's NLL⁰ [E, K], π⁰ [E, K] and number of queries n⁰ [E], E = B, or one
+        row per episode of B / E draws with ``assignment_draws``, ρ then repeated over the episode's draws):
 
             L = NLL_mix
                 + gate_entropy_coef  · mean_b c_b H(π_b) / log K  -- low per-episode entropy: commit to one expert
@@ -465,7 +464,8 @@ class CNMP(nn.Module):
           episode's expert, one shared by modes the share of its episodes among them (≈ 1/4 each before the
           weights task's grasp). The batch entropy then acts on the
           unconditional mixture's per-query posterior softmax_k(log π⁰_k - NLL⁰_bk), which keeps a gradient
-          where the whole episode's posterior is one-hot. One more pass of the decoder per step.
+          where the whole episode's posterior is one-hot. One more pass of the decoder per step (on each
+          episode's first p draws only with ``assignment_draws`` = p).
 
         Entropies are divided by log K (1 for a uniform gate). CNEP's coefficients: its loss is
         16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
@@ -488,8 +488,8 @@ class CNMP(nn.Module):
         else:  # "assigned"
             if prior is None:
                 raise ValueError("mixture_nll='assigned' needs the experts' NLLs and gate on the empty context (prior)")
-            prior_nll_bk, prior_probs, *rest = prior
-            n0 = n if not rest else rest[0].to(nll_bk.dtype).clamp(min=1.0)  # the prior's queries per row
+            prior_nll_bk, prior_probs, n0 = prior
+            n0 = n0.to(nll_bk.dtype).clamp(min=1.0)
             log_joint = prior_probs.clamp(min=1e-12).log() - prior_nll_bk * n0[:, None]  # log π⁰_k Π N⁰_k
             prior_nll = -(torch.logsumexp(log_joint, dim=-1) / n0).mean()
             rho = torch.softmax(self.revive_starving(log_joint.detach()), dim=-1)
@@ -522,8 +522,9 @@ class CNMP(nn.Module):
     def revive_starving(self, log_joint: Tensor, momentum: float = 0.99) -> Tensor:
         """The assignment scores log π⁰_k Π_q N⁰_bk [B, K] with k-means' remedy for an empty cluster: in training,
         each expert's share of the episodes is tracked (a running mean of the hard assignments, ``momentum``
-        per call: one per ``training_loss``, two per step with ``feedback_draw_weight`` > 0); an expert whose share falls below 1 / (4K) is given, in this batch, the episode it fits
-        least badly relative to that episode's expert (the smallest gap max_l s_bl - s_bk). Trained on it,
+        per call: one per ``training_loss``, two per step with ``feedback_draw_weight`` > 0); an expert whose
+        share falls below 1 / (4K) is given, in this batch, the episode it fits least badly relative to that
+        episode's expert (the smallest gap max_l s_bl - s_bk). Trained on it,
         it takes that mode over or drops it. Without this an expert that loses every episode early (the hard
         posterior of a whole episode leaves it no gradient) stays idle while another covers two modes."""
         if not self.training:
@@ -553,10 +554,10 @@ class CNMP(nn.Module):
             if self.mixture_nll == "assigned":  # the experts and gate on the empty context: r = 0
                 p = self.assignment_draws
                 if not p:  # each draw's expert from its own queries
-                    means0, stds0, probs0 = self.unconditional(targets.phase, context.task_params, r.shape[-1])
-                    prior = (self.nll_per_expert(means0, stds0, targets), probs0)
+                    means0, stds0, probs0 = self.unconditional(targets.phase, context.task_params)
+                    prior = (self.nll_per_expert(means0, stds0, targets), probs0, targets.valid.sum(-1))
                 else:  # each episode's expert from the queries of its first p draws
-                    prior = self._episode_prior(targets, context.task_params, draws, min(p, draws), r.shape[-1])
+                    prior = self._episode_prior(targets, context.task_params, draws, min(p, draws))
             loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1),
                                            similarity, prior)
             mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
@@ -570,7 +571,7 @@ class CNMP(nn.Module):
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
         return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
 
-    def _episode_prior(self, targets: Targets, task_params: Tensor | None, draws: int, p: int, r_dim: int
+    def _episode_prior(self, targets: Targets, task_params: Tensor | None, draws: int, p: int
                        ) -> tuple[Tensor, Tensor, Tensor]:
         """The empty-context experts' NLL per episode (per query, over the queries of its first ``p`` of
         ``draws`` draws) [E, K], the empty-context gate [E, K] and the number of those queries [E]."""
@@ -579,16 +580,16 @@ class CNMP(nn.Module):
             raise ValueError(f"{b} draws are not a whole number of episodes of {draws} draws each")
         rows = torch.arange(b, device=targets.phase.device).reshape(b // draws, draws)[:, :p].reshape(-1)
         sub = Targets(targets.phase[rows], targets.values[rows], targets.valid[rows])
-        means0, stds0, probs0 = self.unconditional(sub.phase, None if task_params is None else task_params[rows], r_dim)
+        means0, stds0, probs0 = self.unconditional(sub.phase, None if task_params is None else task_params[rows])
         n_row = sub.valid.sum(-1).to(means0.dtype)
         total = (self.nll_per_expert(means0, stds0, sub) * n_row[:, None]).reshape(b // draws, p, -1).sum(1)
         n_ep = n_row.reshape(b // draws, p).sum(1)
         return total / n_ep.clamp(min=1.0)[:, None], probs0[::p], n_ep
 
-    def unconditional(self, query_phase: Tensor, task_params: Tensor | None, r_dim: int) -> tuple[Tensor, Tensor, Tensor]:
+    def unconditional(self, query_phase: Tensor, task_params: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """The unconditional mixture: the experts μ⁰_k, σ⁰_k [B, K, M, D] and gate π⁰ [B, K] on the empty context
         (r = 0; γ kept)."""
-        r0 = torch.zeros(query_phase.shape[0], r_dim, dtype=query_phase.dtype, device=query_phase.device)
+        r0 = query_phase.new_zeros(query_phase.shape[0], self.gate.in_features)
         means0, stds0 = self.decode_experts(r0, query_phase, task_params)
         return means0, stds0, self.gate_probs(r0)
 
