@@ -286,7 +286,7 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"encoder_layers must be non-empty positive widths, got {self.encoder_layers}")
         if min(self.decoder_layers, default=1) < 1:
             raise ValueError(f"decoder_layers must be positive widths, got {self.decoder_layers}")
-        if isinstance(self.n_experts, bool) or int(self.n_experts) != self.n_experts or self.n_experts < 1:
+        if isinstance(self.n_experts, bool) or not float(self.n_experts).is_integer() or self.n_experts < 1:
             raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {self.n_experts}")
         self.n_experts = int(self.n_experts)
         if self.gate_entropy_coef < 0 or self.batch_entropy_coef < 0:
@@ -320,8 +320,8 @@ class CNMPConfig(PreTrainedConfig):
             raise ValueError(f"sensed_obs_prob must be in [0, 1], got {self.sensed_obs_prob}")
         if not 0.0 <= self.partial_obs_prob <= 1.0:
             raise ValueError(f"partial_obs_prob must be in [0, 1], got {self.partial_obs_prob}")
-        if isinstance(self.assignment_draws, bool) or int(self.assignment_draws) != self.assignment_draws \
-                or self.assignment_draws < 0:
+        if isinstance(self.assignment_draws, bool) or not float(self.assignment_draws).is_integer() \
+                or self.assignment_draws < 0:  # NaN and inf are not integers either
             raise ValueError(f"assignment_draws must be an integer >= 0, got {self.assignment_draws}")
         self.assignment_draws = int(self.assignment_draws)
         if self.assignment_draws and (self.n_experts == 1 or self.mixture_nll != "assigned"):

@@ -229,7 +229,7 @@ class CNMP(nn.Module):
         assignment_draws: int = 0,
     ):
         super().__init__()
-        if int(n_experts) != n_experts or n_experts < 1:
+        if not float(n_experts).is_integer() or n_experts < 1:  # NaN and inf included
             raise ValueError(f"n_experts (the number of decoders K) must be an integer >= 1, got {n_experts}")
         self.sm_dim, self.task_dim, self.min_std = sm_dim, task_dim, min_std
         self.n_experts = int(n_experts)
@@ -240,7 +240,7 @@ class CNMP(nn.Module):
                              f"n_experts={n_experts}, nll_beta={nll_beta}")
         self.gate_entropy_coef, self.batch_entropy_coef = gate_entropy_coef, batch_entropy_coef
         self.mixture_nll = mixture_nll
-        if int(assignment_draws) != assignment_draws or assignment_draws < 0:
+        if not float(assignment_draws).is_integer() or assignment_draws < 0:  # NaN and inf included
             raise ValueError(f"assignment_draws must be an integer >= 0, got {assignment_draws}")
         self.assignment_draws = int(assignment_draws)
         if gate_commit not in GATE_COMMIT:

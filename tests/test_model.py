@@ -527,8 +527,11 @@ def test_assignment_draws_decides_one_expert_per_episode_from_its_first_draws(mi
 def test_assignment_draws_must_be_a_count():
     with pytest.raises(ValueError, match="assignment_draws"):
         CNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
-    with pytest.raises(ValueError, match="assignment_draws"):
-        CNMPConfig(n_experts=2, assignment_draws=1.5)
+    for bad in (1.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="assignment_draws must be an integer"):
+            CNMPConfig(n_experts=2, assignment_draws=bad)
+        with pytest.raises(ValueError, match="assignment_draws must be an integer"):
+            CNMP(sm_dim=2, n_experts=2, assignment_draws=bad)
     for bad in ({"n_experts": 1}, {"n_experts": 2, "mixture_nll": "likelihood"}):  # it would do nothing
         with pytest.raises(ValueError, match="assignment_draws decides"):
             CNMPConfig(assignment_draws=1, **bad)
@@ -585,7 +588,7 @@ def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_
         CNMP(sm_dim=2, n_experts=2, gate_commit="sometimes")
 
 
-@pytest.mark.parametrize("k", [0, -2, 1.5])
+@pytest.mark.parametrize("k", [0, -2, 1.5, float("nan"), float("inf")])
 def test_bad_number_of_experts_is_a_clear_error(k):
     with pytest.raises(ValueError, match="n_experts"):
         CNMPConfig(n_experts=k)
