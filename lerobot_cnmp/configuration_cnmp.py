@@ -89,9 +89,9 @@ class CNMPConfig(PreTrainedConfig):
         assignment_draws: With ``mixture_nll="assigned"``, which queries decide an episode's expert. 0
             (default): each draw's own queries, the empty-context pass running on every draw. p >= 1: the
             queries of the episode's first p of its ``draws_per_sample`` draws, the expert then shared by all
-            its draws and the empty-context pass run on those p only (a cheaper step: with 8 draws and
-            ``shared_decoder_layers`` 3, about half the weights task's training time at the same bars; the
-            cost bar on 3 seeds of 5, README "Mixture decoder").
+            its draws and the empty-context rows (those p only) run in the context's decoder pass (a cheaper
+            step: with 8 draws and ``shared_decoder_layers`` 3, about half the weights task's training time at
+            the same bars; figures and the cost bar: README "Mixture decoder").
         gate_entropy_coef: Weight of the per-episode gate entropy mean_b H(π_b) / log K, *added* to the loss:
             each context should commit to one expert. CNEP's 7.553, relative to its NLL weight, is 0.62; with
             the likelihood that collapses ambiguous contexts onto one averaging expert (weights task: 0.89 on

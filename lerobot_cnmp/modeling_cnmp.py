@@ -464,8 +464,8 @@ class CNMP(nn.Module):
           episode's expert, one shared by modes the share of its episodes among them (≈ 1/4 each before the
           weights task's grasp). The batch entropy then acts on the
           unconditional mixture's per-query posterior softmax_k(log π⁰_k - NLL⁰_bk), which keeps a gradient
-          where the whole episode's posterior is one-hot. One more pass of the decoder per step (on each
-          episode's first p draws only with ``assignment_draws`` = p).
+          where the whole episode's posterior is one-hot. One more pass of the decoder per step (with
+          ``assignment_draws`` = p: each episode's first p draws only, their rows in the context's pass).
 
         Entropies are divided by log K (1 for a uniform gate). CNEP's coefficients: its loss is
         16.81·(K/2)·(1/K)·Σ_k π_k NLL_k - 10.672·(log 2/log K)·H_batch + 7.553·(log 2/log K)·H_ind
@@ -476,12 +476,13 @@ class CNMP(nn.Module):
         shared-obstacle bars of README "Mixture decoder"; the likelihood meets the training-cost bar, which
         ``"assigned"`` misses (on demos without modes)."""
         log_k = float(np.log(self.n_experts))
-        expected = (probs * nll_bk).sum(dim=-1).mean()
+        with torch.no_grad():  # reported; the loss of "cnep" (recomputed there with its gradient)
+            expected = (probs * nll_bk).sum(dim=-1).mean()
         n = n_queries.to(nll_bk.dtype).clamp(min=1.0)
         batch_probs = probs
         extra = {}
         if self.mixture_nll == "cnep":
-            nll = expected
+            nll = (probs * nll_bk).sum(dim=-1).mean()
         elif self.mixture_nll == "likelihood":
             log_lik = torch.logsumexp(probs.clamp(min=1e-12).log() - nll_bk * n[:, None], dim=-1)  # log Σ π Π N
             nll = -(log_lik / n).mean()
@@ -532,9 +533,12 @@ class CNMP(nn.Module):
         k = self.n_experts
         hard = F.one_hot(log_joint.argmax(dim=-1), k).to(self.expert_share.dtype).mean(dim=0)
         self.expert_share.mul_(momentum).add_((1.0 - momentum) * hard)
+        starving = (self.expert_share < 1.0 / (4 * k)).nonzero().flatten().tolist()
+        if not starving:
+            return log_joint
         out, taken = log_joint.clone(), torch.zeros(log_joint.shape[0], dtype=torch.bool, device=log_joint.device)
         gap = log_joint.amax(dim=-1, keepdim=True) - log_joint  # [B, K], 0 for the episode's own expert
-        for e in (self.expert_share < 1.0 / (4 * k)).nonzero().flatten().tolist():
+        for e in starving:
             b = int(gap[:, e].masked_fill(taken, float("inf")).argmin())
             if not taken[b]:
                 out[b] = float("-inf")
@@ -547,20 +551,21 @@ class CNMP(nn.Module):
         b * draws .. b * draws + draws - 1 are draws of one episode (``assignment_draws``)."""
         if self.n_experts > 1:
             r = self.condition(context)
-            means, stds = self.decode_experts(r, targets.phase, context.task_params)
-            probs = self.gate_probs(r)
             similarity = self.expert_similarity(r, context.task_params) if self.gate_commit == "redundant" else None
             prior = None
-            if self.mixture_nll == "assigned":  # the experts and gate on the empty context: r = 0
-                p = self.assignment_draws
-                if not p:  # each draw's expert from its own queries
+            if self.mixture_nll == "assigned" and self.assignment_draws:
+                # each episode's expert from the queries of its first p draws, decided by the experts and gate on
+                # the empty context (r = 0), whose rows join the context's in one decoder pass
+                nll_bk, means, stds, probs, prior = self._with_episode_prior(r, context.task_params, targets, draws)
+            else:
+                means, stds = self.decode_experts(r, targets.phase, context.task_params)
+                probs, nll_bk = self.gate_probs(r), self.nll_per_expert(means, stds, targets)
+                if self.mixture_nll == "assigned":  # each draw's expert from its own queries
                     means0, stds0, probs0 = self.unconditional(targets.phase, context.task_params)
                     prior = (self.nll_per_expert(means0, stds0, targets), probs0, targets.valid.sum(-1))
-                else:  # each episode's expert from the queries of its first p draws
-                    prior = self._episode_prior(targets, context.task_params, draws, min(p, draws))
-            loss, info = self.mixture_loss(self.nll_per_expert(means, stds, targets), probs, targets.valid.sum(-1),
-                                           similarity, prior)
-            mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
+            loss, info = self.mixture_loss(nll_bk, probs, targets.valid.sum(-1), similarity, prior)
+            with torch.no_grad():  # for the monitoring figures only
+                mean, std = pick_expert(means, stds, probs.argmax(dim=-1))
         else:
             mean, std = self(context, targets.phase)
             loss = self.nll(mean, std, targets, self.nll_beta, self.dim_weights)
@@ -571,20 +576,27 @@ class CNMP(nn.Module):
             mean_std = (std * w).sum() / (w.sum() * mean.shape[-1]).clamp(min=1.0)
         return loss, {**info, "mae": mae.item(), "std": mean_std.item()}
 
-    def _episode_prior(self, targets: Targets, task_params: Tensor | None, draws: int, p: int
-                       ) -> tuple[Tensor, Tensor, Tensor]:
-        """The empty-context experts' NLL per episode (per query, over the queries of its first ``p`` of
-        ``draws`` draws) [E, K], the empty-context gate [E, K] and the number of those queries [E]."""
+    def _with_episode_prior(self, r: Tensor, task_params: Tensor | None, targets: Targets, draws: int
+                            ) -> tuple[Tensor, Tensor, Tensor, Tensor, tuple[Tensor, Tensor, Tensor]]:
+        """The context's NLL_bk [B, K], μ_k and σ_k [B, K, M, D] and gate π [B, K], and the ``prior`` of
+        ``mixture_loss`` with ``assignment_draws`` = p: the empty-context experts' NLL per episode (per query,
+        over the queries of its first p of ``draws`` draws) [E, K], the empty-context gate [E, K] and the number
+        of those queries [E]. The empty context's rows (r = 0) go through the decoder with the context's."""
         b = targets.phase.shape[0]
         if b % draws:
             raise ValueError(f"{b} draws are not a whole number of episodes of {draws} draws each")
+        p = min(self.assignment_draws, draws)
         rows = torch.arange(b, device=targets.phase.device).reshape(b // draws, draws)[:, :p].reshape(-1)
-        sub = Targets(targets.phase[rows], targets.values[rows], targets.valid[rows])
-        means0, stds0, probs0 = self.unconditional(sub.phase, None if task_params is None else task_params[rows])
-        n_row = sub.valid.sum(-1).to(means0.dtype)
-        total = (self.nll_per_expert(means0, stds0, sub) * n_row[:, None]).reshape(b // draws, p, -1).sum(1)
+        r_all = torch.cat([r, r.new_zeros(rows.numel(), r.shape[1])])
+        every = Targets(*(torch.cat([x, x[rows]]) for x in (targets.phase, targets.values, targets.valid)))
+        gamma = None if task_params is None else torch.cat([task_params, task_params[rows]])
+        means, stds = self.decode_experts(r_all, every.phase, gamma)
+        nll_all, probs_all = self.nll_per_expert(means, stds, every), self.gate_probs(r_all)
+        n_row = every.valid[b:].sum(-1).to(nll_all.dtype)
+        total = (nll_all[b:] * n_row[:, None]).reshape(b // draws, p, -1).sum(1)
         n_ep = n_row.reshape(b // draws, p).sum(1)
-        return total / n_ep.clamp(min=1.0)[:, None], probs0[::p], n_ep
+        prior = (total / n_ep.clamp(min=1.0)[:, None], probs_all[b::p], n_ep)
+        return nll_all[:b], means[:b], stds[:b], probs_all[:b], prior
 
     def unconditional(self, query_phase: Tensor, task_params: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """The unconditional mixture: the experts μ⁰_k, σ⁰_k [B, K, M, D] and gate π⁰ [B, K] on the empty context

@@ -691,13 +691,16 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
     redundancy commitment penalizes π split over identical experts, not over experts predicting different modes."""
     import torch.nn.functional as F
 
-    net = CNMP(sm_dim=3, n_experts=3, shared_decoder_layers=2)
     r, q = torch.randn(4, 128), torch.rand(4, 7)
-    mean, _ = net.decode_experts(r, q)
-    x = F.relu(net.trunk(torch.cat([q[..., None], r[:, None].expand(-1, 7, -1)], -1)))
-    for i in range(len(net.decoders.weights)):
-        x = F.linear(F.relu(x) if i else x, net.decoders.weights[i][1], net.decoders.biases[i][1])
-    assert torch.allclose(x[..., :3], mean[:, 1], atol=1e-5)
+    for shared in (2, 3):  # the experts' own last hidden layer and output; their output layer only
+        net = CNMP(sm_dim=3, n_experts=3, shared_decoder_layers=shared)
+        mean, std = net.decode_experts(r, q)
+        for k in range(3):
+            x = F.relu(net.trunk(torch.cat([q[..., None], r[:, None].expand(-1, 7, -1)], -1)))
+            for i in range(len(net.decoders.weights)):
+                x = F.linear(F.relu(x) if i else x, net.decoders.weights[i][k], net.decoders.biases[i][k])
+            assert torch.allclose(x[..., :3], mean[:, k], atol=1e-5)
+            assert torch.allclose(net.min_std + F.softplus(x[..., 3:]), std[:, k], atol=1e-5)
     with pytest.raises(ValueError, match="shared_decoder_layers"):
         CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
     with pytest.raises(ValueError, match="n_experts is 1"):
