@@ -111,3 +111,38 @@ def test_sine_benchmark_runs_end_to_end_with_the_mixture(tmp_path, monkeypatch):
     assert res["mixture_experts"] == 2 and res["mixture_settings"]["assignment_draws"] == 1
     assert {"sine_error_cnmp", "sine_error_mixture", "sine_error_promp"} <= set(res)
     assert (tmp_path / "a.png").stat().st_size > 0 and (tmp_path / "b.png").stat().st_size > 0
+
+
+def test_mixture_cost_compares_mean_curves_over_seeds():
+    """--seeds: the curves are averaged point by point (time and NLL), the single decoder's final mean NLL is
+    the target, and a mixture that never gets there is 'not reached' (no ratio), not a number."""
+    import mixture_cost as mc
+
+    cnmp = [[(1, 1.0, -1.0), (2, 2.0, -2.0)], [(1, 3.0, -3.0), (2, 4.0, -4.0)]]
+    mean = mc.mean_curve(cnmp)
+    assert mean == [(1, 2.0, -2.0), (2, 3.0, -3.0)]
+    res = mc.compare({"cnmp": mean, "mixture": [(1, 4.0, -2.5), (2, 6.0, -3.5)]})
+    assert res["target_validation_nll"] == -3.0 and res["steps_to_target_mixture"] == 2
+    assert res["time_ratio_mixture_vs_cnmp"] == 2.0  # 6 s against 3 s
+    res = mc.compare({"cnmp": mean, "mixture": [(1, 4.0, -2.5), (2, 6.0, -2.9)]})
+    assert res["time_to_target_s_mixture"] is None and "time_ratio_mixture_vs_cnmp" not in res
+    try:
+        mc.mean_curve([cnmp[0], cnmp[1][:1]])  # runs of different lengths cannot be averaged
+    except ValueError:
+        pass
+    else:
+        raise AssertionError("curves of different lengths were averaged")
+
+
+def test_mixture_cost_runs_end_to_end_over_two_seeds(monkeypatch, capsys):
+    """The bench's whole path (both models per seed, mean curves, per-seed verdicts, JSON) on a few steps."""
+    import json
+
+    import mixture_cost as mc
+
+    monkeypatch.setattr(sys, "argv", ["mixture_cost.py", "--experts", "2", "--steps", "4", "--every", "2",
+                                      "--validation", "2", "--seeds", "0", "1", "--assignment_draws", "1"])
+    res = mc.main()
+    assert res["seeds"] == [0, 1] and [s["seed"] for s in res["per_seed"]] == [0, 1]
+    assert res["assignment_draws"] == 1 and res["steps_to_target_cnmp"] == 4
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == json.loads(json.dumps(res))
