@@ -107,7 +107,7 @@ def _matching_config(train_cfg: dict) -> Path | None:
 
 
 # the mixture decoder's settings a mixture bench takes on the command line (None: the config's) and reports
-MIXTURE_SETTINGS = ("mixture_nll", "assignment_draws", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+MIXTURE_SETTINGS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
 
 
 def mixture_settings(args) -> dict:
@@ -117,7 +117,7 @@ def mixture_settings(args) -> dict:
 
 # CNMP settings that change what is trained; a run whose values differ from its committed config's (or, where
 # the config does not set them, from CNMPConfig's defaults) was given them on the command line
-_TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll", "assignment_draws",
+_TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll", "assignment_draws", "unconditional_nll_coef",
                     "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers", "expert_selection", "nll_beta",
                     "commanded_loss_weight", "feedback_draw_weight", "draws_per_sample", "n_max_context",
                     "m_max_targets", "context_in_targets", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr",

@@ -2,8 +2,8 @@
 2D obstacle data.
 
     python bench/mixture_cost.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
-                                 [--shared_decoder_layers S] [--gate_commit C] [--assignment_draws P]
-                                 [--steps 3000] [--every 250]
+                                 [--shared_decoder_layers S] [--gate_commit C] [--assignment_draws P] [--unconditional_nll_coef C]
+                                 [--steps 3000] [--mixture_steps N] [--every 250] [--seed 0 | --seeds 0 1 2 3 4]
 
 Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
 ``configs/cnmp_obstacle2d.json`` on ``datasets/cnmp_obstacle2d`` with the in-memory API, same steps, batch
@@ -81,6 +81,8 @@ def main() -> dict:
                    help="the mixture's decoder hidden layers shared by its experts (default: the config's, "
                         "CNMPConfig.shared_decoder_layers)")
     p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT)
+    p.add_argument("--unconditional_nll_coef", type=float, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
     p.add_argument("--assignment_draws", type=int, default=None,
                    help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--steps", type=int, default=3000)

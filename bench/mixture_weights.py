@@ -50,6 +50,8 @@ def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
     p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="(default: the config's)")
+    p.add_argument("--unconditional_nll_coef", type=float, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
     p.add_argument("--assignment_draws", type=int, default=None,
                    help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")

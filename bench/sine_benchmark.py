@@ -93,6 +93,8 @@ def main() -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
     p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
+    p.add_argument("--unconditional_nll_coef", type=float, default=None,
+                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
     p.add_argument("--assignment_draws", type=int, default=None,
                    help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
     p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")

@@ -92,6 +92,14 @@ class CNMPConfig(PreTrainedConfig):
             its draws and the empty-context rows (those p only) run in the context's decoder pass (a cheaper
             step: with 8 draws and ``shared_decoder_layers`` 3, about half the weights task's training time at
             the same bars; figures and the cost bar: README "Mixture decoder").
+        unconditional_nll_coef: With ``mixture_nll="assigned"``, the weight c of the unconditional mixture's
+            NLL (the experts and gate on the empty context, which decide each episode's expert) in the loss:
+            c · NLL⁰_mix + Σ_k ρ_k (NLL_k - log π_k). 1 (default): the two count alike. The unconditional
+            mixture trains the same decoder (through the shared trunk) on r = 0, a second task beside the
+            conditional one; a smaller c leaves it the clustering and the decoder to the contexts (README
+            "Mixture decoder": with 0.25, ``assignment_draws`` 1 and ``shared_decoder_layers`` 3 the mixture
+            meets all four bars there, the training-cost one in 1.35x-1.54x the single decoder's time on 5
+            seeds; with 1, on 1 seed of 5).
         gate_entropy_coef: Weight of the per-episode gate entropy mean_b H(π_b) / log K, *added* to the loss:
             each context should commit to one expert. CNEP's 7.553, relative to its NLL weight, is 0.62; with
             the likelihood that collapses ambiguous contexts onto one averaging expert (weights task: 0.89 on
@@ -205,6 +213,7 @@ class CNMPConfig(PreTrainedConfig):
     batch_entropy_coef: float = 0.88
     mixture_nll: str = "assigned"
     assignment_draws: int = 0
+    unconditional_nll_coef: float = 1.0
     gate_commit: str = "always"
     shared_decoder_layers: int | None = None
     expert_selection: str = "most_probable"
@@ -324,6 +333,12 @@ class CNMPConfig(PreTrainedConfig):
                 or self.assignment_draws < 0:  # NaN and inf are not integers either
             raise ValueError(f"assignment_draws must be an integer >= 0, got {self.assignment_draws}")
         self.assignment_draws = int(self.assignment_draws)
+        if not 0.0 < self.unconditional_nll_coef < float("inf"):  # NaN included
+            raise ValueError(f"unconditional_nll_coef must be a finite number > 0, got {self.unconditional_nll_coef}")
+        if self.unconditional_nll_coef != 1.0 and (self.n_experts == 1 or self.mixture_nll != "assigned"):
+            raise ValueError(f"unconditional_nll_coef weighs the unconditional mixture of mixture_nll='assigned' with "
+                             f"n_experts > 1; got n_experts={self.n_experts}, mixture_nll={self.mixture_nll!r}: "
+                             f"set unconditional_nll_coef 1")
         if self.assignment_draws and (self.n_experts == 1 or self.mixture_nll != "assigned"):
             raise ValueError(f"assignment_draws decides each episode's expert for mixture_nll='assigned' with "
                              f"n_experts > 1; got n_experts={self.n_experts}, mixture_nll={self.mixture_nll!r}: "

@@ -227,6 +227,7 @@ class CNMP(nn.Module):
         gate_commit: str = "always",
         shared_decoder_layers: int = 0,
         assignment_draws: int = 0,
+        unconditional_nll_coef: float = 1.0,
     ):
         super().__init__()
         if not float(n_experts).is_integer() or n_experts < 1:  # NaN and inf included
@@ -243,6 +244,9 @@ class CNMP(nn.Module):
         if not float(assignment_draws).is_integer() or assignment_draws < 0:  # NaN and inf included
             raise ValueError(f"assignment_draws must be an integer >= 0, got {assignment_draws}")
         self.assignment_draws = int(assignment_draws)
+        if not 0.0 < unconditional_nll_coef < float("inf"):  # NaN included
+            raise ValueError(f"unconditional_nll_coef must be a finite number > 0, got {unconditional_nll_coef}")
+        self.unconditional_nll_coef = float(unconditional_nll_coef)
         if gate_commit not in GATE_COMMIT:
             raise ValueError(f"gate_commit must be one of {GATE_COMMIT}, got {gate_commit!r}")
         self.gate_commit = gate_commit
@@ -454,12 +458,13 @@ class CNMP(nn.Module):
           unconditional predictions μ⁰_k, σ⁰_k and gate π⁰ = π(0); γ kept), the same for whatever context is
           drawn from the episode, and the context's experts and gate are trained on that expert:
 
-              NLL_mix = -mean_b (1/n_b) log Σ_k π⁰_k Π_q N(y_bq | μ⁰_bkq, σ⁰_bkq)   -- the unconditional mixture
-                        + mean_b Σ_k ρ_bk (NLL_bk - log π_bk)                       -- the context's experts, gate
+              NLL_mix = -c mean_b (1/n_b) log Σ_k π⁰_k Π_q N(y_bq | μ⁰_bkq, σ⁰_bkq)  -- the unconditional mixture
+                        + mean_b Σ_k ρ_bk (NLL_bk - log π_bk)                          -- the context's experts, gate
 
           with ρ_bk = π⁰_k Π_q N⁰_bkq / Σ_l π⁰_l Π_q N⁰_blq (no gradient; ``revive_starving`` gives an idle
-          expert an episode). The gate's cross-entropy to ρ counts once per episode, one label each, not
-          divided by n_b as the likelihood's log π is: so divided, the gate learned too slowly. The modes are
+          expert an episode) and c = ``unconditional_nll_coef``. The gate's cross-entropy to ρ counts once per
+          episode, one label each, not divided by n_b as the likelihood's log π is: so divided, the gate
+          learned too slowly. The modes are
           the clusters of the unconditional mixture; a context that decides the mode gets π ≈ one-hot on its
           episode's expert, one shared by modes the share of its episodes among them (≈ 1/4 each before the
           weights task's grasp). The batch entropy then acts on the
@@ -474,7 +479,8 @@ class CNMP(nn.Module):
         dims, Eq. 1 here sums them: with D > 1 dims the entropy terms weigh relatively D times less.) The
         defaults, ``"assigned"`` with gate_entropy_coef 0.2 and CNEP's 0.88, meet the sine, weights and
         shared-obstacle bars of README "Mixture decoder"; the likelihood meets the training-cost bar, which
-        ``"assigned"`` misses (on demos without modes)."""
+        ``"assigned"`` misses (on demos without modes) unless its unconditional term is weighted down
+        (``unconditional_nll_coef`` 0.25, with ``assignment_draws`` 1 and the whole trunk shared: all four bars)."""
         log_k = float(np.log(self.n_experts))
         with torch.no_grad():  # reported; the loss of "cnep" (recomputed there with its gradient)
             expected = (probs * nll_bk).sum(dim=-1).mean()
@@ -497,7 +503,7 @@ class CNMP(nn.Module):
             if rho.shape[0] != nll_bk.shape[0]:  # one assignment per episode, shared by its draws
                 rho = rho.repeat_interleave(nll_bk.shape[0] // rho.shape[0], dim=0)
             assigned = (rho * (nll_bk - probs.clamp(min=1e-12).log())).sum(dim=-1).mean()
-            nll = prior_nll + assigned
+            nll = self.unconditional_nll_coef * prior_nll + assigned
             batch_probs = torch.softmax(prior_probs.clamp(min=1e-12).log() - prior_nll_bk, dim=-1)
             extra = {"prior_nll": prior_nll.item(), "assigned_nll": assigned.item(),
                      "min_expert_share": rho.mean(dim=0).min().item()}
@@ -782,6 +788,7 @@ class CNMPPolicy(PreTrainedPolicy):
             gate_commit=config.gate_commit,
             shared_decoder_layers=config.shared_decoder_layers,
             assignment_draws=config.assignment_draws,
+            unconditional_nll_coef=config.unconditional_nll_coef,
         )
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         spec = config.spec

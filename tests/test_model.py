@@ -488,6 +488,15 @@ def test_mixture_loss_assigned(mixture_net):
     torch.testing.assert_close(loss, want)
     assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
     assert set(info) >= {"prior_nll", "assigned_nll", "min_expert_share"}
+    # unconditional_nll_coef c weighs the unconditional mixture's term only: L(c) - L(1) = (c - 1) NLL⁰_mix
+    mixture_net.mixture_nll, mixture_net.unconditional_nll_coef = "assigned", 0.25
+    try:
+        loss_c, info_c = mixture_net.training_loss(ctx, targets)
+    finally:
+        mixture_net.mixture_nll, mixture_net.unconditional_nll_coef = default, 1.0
+    prior_term = -(torch.logsumexp(log_joint, -1) / n).mean()
+    torch.testing.assert_close(loss_c, want - 0.75 * prior_term)
+    assert info_c["prior_nll"] == pytest.approx(prior_term.item(), rel=1e-5)
 
 
 @pytest.mark.parametrize("p", [1, 2])
@@ -522,6 +531,18 @@ def test_assignment_draws_decides_one_expert_per_episode_from_its_first_draws(mi
             - mixture_net.batch_entropy_coef * h(tempered.mean(0)) / np.log(3))
     torch.testing.assert_close(loss, want)
     assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
+
+
+def test_unconditional_nll_coef_must_be_positive_and_only_with_assigned():
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
+            CNMP(sm_dim=2, n_experts=2, unconditional_nll_coef=bad)
+        with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
+            CNMPConfig(n_experts=2, unconditional_nll_coef=bad)
+    for bad in ({}, {"n_experts": 2, "mixture_nll": "likelihood"}):
+        with pytest.raises(ValueError, match="unconditional_nll_coef weighs"):
+            CNMPConfig(unconditional_nll_coef=0.5, **bad)
+    assert CNMPConfig(n_experts=2, unconditional_nll_coef=0.25).unconditional_nll_coef == 0.25
 
 
 def test_assignment_draws_must_be_a_count():
