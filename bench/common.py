@@ -110,6 +110,22 @@ def _matching_config(train_cfg: dict) -> Path | None:
 MIXTURE_SETTINGS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
 
 
+def add_mixture_arguments(p, mixture_nll_choices=None, gate_commit_choices=None) -> None:
+    """The ``MIXTURE_SETTINGS`` as a mixture bench's options, each None (the config's, CNMPConfig's field of the
+    same name) unless given. ``*_choices``: their allowed values (lerobot_cnmp's constants, passed in so that a
+    bench can read its command line before that slow import)."""
+    p.add_argument("--mixture_nll", default=None, choices=mixture_nll_choices,
+                   help="the mixture's loss form (default: the config's)")
+    p.add_argument("--assignment_draws", type=int, default=None, help="(default: the config's)")
+    p.add_argument("--unconditional_nll_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
+    p.add_argument("--gate_commit", default=None, choices=gate_commit_choices,
+                   help="which contexts the gate-entropy term asks to commit (default: the config's)")
+    p.add_argument("--shared_decoder_layers", type=int, default=None,
+                   help="decoder hidden layers the experts share (default: the config's)")
+
+
 def mixture_settings(args) -> dict:
     """The ``MIXTURE_SETTINGS`` given on the command line (those not None), as CNMP config overrides."""
     return {k: getattr(args, k) for k in MIXTURE_SETTINGS if getattr(args, k) is not None}

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONFIG, DATASET, MIXTURE_SETTINGS, api_model, config, mixture_settings  # noqa: E402
+from common import CONFIG, DATASET, MIXTURE_SETTINGS, add_mixture_arguments, api_model, config, mixture_settings  # noqa: E402
 from time_to_error import PHASES, first_below, validation_set  # noqa: E402
 
 from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
@@ -74,17 +74,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> tuple
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="the mixture's (default: the config's)")
-    p.add_argument("--gate_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
-    p.add_argument("--batch_entropy_coef", type=float, default=None, help="the mixture's (default: the config's)")
-    p.add_argument("--shared_decoder_layers", type=int, default=None,
-                   help="the mixture's decoder hidden layers shared by its experts (default: the config's, "
-                        "CNMPConfig.shared_decoder_layers)")
-    p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT)
-    p.add_argument("--unconditional_nll_coef", type=float, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
-    p.add_argument("--assignment_draws", type=int, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
+    add_mixture_arguments(p, MIXTURE_NLL, GATE_COMMIT)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
                    help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")

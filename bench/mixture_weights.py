@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import MIXTURE_SETTINGS, REPO, api_model, config, mixture_settings  # noqa: E402
+from common import MIXTURE_SETTINGS, REPO, add_mixture_arguments, api_model, config, mixture_settings  # noqa: E402
 from weights_report import start_and_lift  # noqa: E402
 
 from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
@@ -49,17 +49,7 @@ def unseen_masses() -> list[float]:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    p.add_argument("--mixture_nll", default=None, choices=MIXTURE_NLL, help="(default: the config's)")
-    p.add_argument("--unconditional_nll_coef", type=float, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
-    p.add_argument("--assignment_draws", type=int, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
-    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--gate_commit", default=None, choices=GATE_COMMIT,
-                   help="which contexts the gate-entropy term asks to commit (default: the config's)")
-    p.add_argument("--shared_decoder_layers", type=int, default=None,
-                   help="decoder hidden layers the experts share (default: the config's)")
+    add_mixture_arguments(p, MIXTURE_NLL, GATE_COMMIT)
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", default=None, help="write the fitted checkpoint here")

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import MIXTURE_SETTINGS, mixture_settings
+from common import MIXTURE_SETTINGS, add_mixture_arguments, mixture_settings
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 200
@@ -92,17 +92,7 @@ def main() -> dict:
     p.add_argument("--batch_size", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
-    p.add_argument("--mixture_nll", default=None, help="the mixture's loss form (default: the config's)")
-    p.add_argument("--unconditional_nll_coef", type=float, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.unconditional_nll_coef)")
-    p.add_argument("--assignment_draws", type=int, default=None,
-                   help="the mixture's (default: the config's, CNMPConfig.assignment_draws)")
-    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--shared_decoder_layers", type=int, default=None,
-                   help="decoder hidden layers the experts share (default: the config's)")
-    p.add_argument("--gate_commit", default=None, choices=("always", "where_decided", "redundant"),
-                   help="(default: the config's)")
+    add_mixture_arguments(p, gate_commit_choices=("always", "where_decided", "redundant"))
     p.add_argument("--plot", default=str(REPO / "outputs" / "sine_cnmp_vs_promp.png"))
     p.add_argument("--mixture_plot", default=str(REPO / "outputs" / "sine_mixture.png"))
     args = p.parse_args()

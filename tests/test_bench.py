@@ -146,3 +146,18 @@ def test_mixture_cost_runs_end_to_end_over_two_seeds(monkeypatch, capsys):
     assert res["seeds"] == [0, 1] and [s["seed"] for s in res["per_seed"]] == [0, 1]
     assert res["assignment_draws"] == 1 and res["steps_to_target_cnmp"] == 4
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == json.loads(json.dumps(res))
+
+
+def test_mixture_arguments_cover_every_mixture_setting():
+    """Every bench that takes the mixture's settings gets each of MIXTURE_SETTINGS as an option (None: the
+    config's), and only those given reach the model."""
+    import argparse
+
+    from common import MIXTURE_SETTINGS, add_mixture_arguments, mixture_settings
+
+    p = argparse.ArgumentParser()
+    add_mixture_arguments(p)
+    args = p.parse_args([])
+    assert {k for k, v in vars(args).items() if v is None} == set(MIXTURE_SETTINGS) and mixture_settings(args) == {}
+    args = p.parse_args(["--assignment_draws", "1", "--unconditional_nll_coef", "0.25"])
+    assert mixture_settings(args) == {"assignment_draws": 1, "unconditional_nll_coef": 0.25}
