@@ -1,0 +1,89 @@
+"""Record the golden checkpoints of tests/test_golden.py (run once, on the code whose behaviour they pin).
+
+For each committed CNMP training config (configs/cnmp_*.json, whose dataset is committed) this builds the
+policy on its dataset, takes a few optimizer steps (so the weights are not an initialization), saves the
+checkpoint (config.json + model.safetensors + processors) under tests/golden/<config>/ and records the
+actions of `select_action` and `predict_action_chunk` on a fixed observation sequence (the dataset's first
+episode) in actions.npz. The test reloads each checkpoint with the current code and requires bit-identical
+actions.
+
+    python tests/golden/make_golden.py            # all configs
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+import lerobot_policy_cnmp  # noqa: F401  (registers --policy.type=cnmp)
+
+REPO = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+STEPS = 5  # optimizer steps before saving
+FRAMES = 12  # observation sequence length
+
+
+def observations(ds: LeRobotDataset, keys: list[str]) -> list[dict[str, torch.Tensor]]:
+    out = []
+    for i in range(FRAMES):
+        item = ds[i * 3]
+        out.append({k: item[k][None].float() for k in keys})
+    return out
+
+
+def record(name: str) -> None:
+    raw = json.loads((REPO / "configs" / f"{name}.json").read_text())
+    root = REPO / raw["dataset"]["root"]
+    if not (root / "meta" / "info.json").is_file():
+        print(f"skip {name}: {root} not committed")
+        return
+    pol = dict(raw["policy"])
+    pol.pop("type")
+    pol.update(device="cpu", push_to_hub=False)
+    cfg = PreTrainedConfig.get_choice_class("cnmp")(**pol)
+    meta = LeRobotDatasetMetadata(raw["dataset"]["repo_id"], root=root)
+    torch.manual_seed(0)
+    policy = make_policy(cfg, ds_meta=meta)
+    ds = LeRobotDataset(raw["dataset"]["repo_id"], root=root)
+    opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(0)
+    policy.train()
+    for _ in range(STEPS):
+        batch = {"episode_index": torch.arange(4) % meta.total_episodes}
+        loss, _ = policy.forward(batch, generator=g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    policy.eval()
+    out = HERE / name
+    shutil.rmtree(out, ignore_errors=True)
+    policy.save_pretrained(out)
+    pre, post = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    keys = sorted(policy.config.input_features)
+    obs = observations(ds, keys)
+    torch.manual_seed(1)
+    policy.reset()
+    steps = np.stack([policy.select_action(dict(o)).numpy() for o in obs])
+    torch.manual_seed(2)
+    policy.reset()
+    chunk = policy.predict_action_chunk(dict(obs[0])).numpy()
+    np.savez(out / "actions.npz", select_action=steps, chunk=chunk,
+             **{f"obs.{k}": np.stack([o[k].numpy() for o in obs]) for k in keys})
+    print(f"{name}: {steps.shape} actions, chunk {chunk.shape}, input {keys}")
+
+
+if __name__ == "__main__":
+    names = sys.argv[1:] or sorted(p.stem for p in (REPO / "configs").glob("cnmp_*.json"))
+    for n in names:
+        record(n)
