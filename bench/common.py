@@ -69,11 +69,11 @@ def api_model(cfg: dict | None = None):
     """A ``CNMPModel`` with the training config's model, sampling and learning-rate settings."""
     from lerobot_cnmp.api import CNMPModel
 
-    from lerobot_cnmp.executor import ExecutionConfig
+    from lerobot_cnmp.execution.config import ExecutionConfig
 
     pol = (cfg or config())["policy"]
     kw = {k: pol[k] for k in API_FIELDS if k in pol}
-    if "execution" in pol:  # the configs' execution settings (lerobot_cnmp.executor.ExecutionConfig)
+    if "execution" in pol:  # the configs' execution settings (lerobot_cnmp.execution.executor.ExecutionConfig)
         kw["execution"] = ExecutionConfig(**pol["execution"])
     return CNMPModel(**kw)
 
@@ -147,7 +147,7 @@ def _policy_overrides(train_cfg: dict, committed: dict) -> dict:
         return {k: v for k, v in got.items() if k in want and v != want[k] and k not in ("device", "pretrained_path")}
     import dataclasses
 
-    from lerobot_cnmp.configuration_cnmp import CNMPConfig
+    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 
     defaults = {f.name: f.default for f in dataclasses.fields(CNMPConfig) if f.default is not dataclasses.MISSING}
     def norm(v):  # a dataclass default tuple reads back from JSON as a list
@@ -231,7 +231,7 @@ def fit_checkpoint(out_dir: Path, steps: int | None = None, config_path: Path = 
     """Fit the config's CNMP with the in-memory API for the config's steps and batch size (the same model,
     sampling and schedule as ``lerobot-train``; whole demos instead of windows; γ when the dataset has it),
     save it to ``out_dir`` with a ``bench_provenance.json`` recording the call."""
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     cfg = config(config_path)
     steps = steps or cfg["steps"]

@@ -99,7 +99,7 @@ BUDGET_RULE = (f"same training wall time for every method: ~{BUDGET_S} s of trai
 
 METHODS = ("cnmp", "act", "diffusion", "promp")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
-PROMP_LABEL = ("open loop: movement_primitives' ProMP (31 RBFs per action dim, lerobot_cnmp.baselines.ProMPBaseline) "
+PROMP_LABEL = ("open loop: movement_primitives' ProMP (31 RBFs per action dim, lerobot_cnmp.promp.baselines.ProMPBaseline) "
                "fitted in closed form on the first N demos' actions by lerobot-cnmp-fit-promp, saved as a LeRobot "
                "policy (--policy.type=promp) and evaluated by the same lerobot-eval; at each episode's first step "
                "it is conditioned on the episode's conditions (observation.environment_state) or, on a task with "
@@ -322,7 +322,7 @@ def env_config(task: str):
     the registered class, the others are string fields or ``null``)."""
     from lerobot.envs.configs import EnvConfig
 
-    import lerobot_cnmp.envs  # noqa: F401  (registers the env types)
+    import lerobot_cnmp.sims  # noqa: F401  (registers the env types)
 
     kw = dict(a.removeprefix("--env.").split("=", 1) for a in TASKS[task]["env"])
     cls = EnvConfig.get_choice_class(kw.pop("type"))

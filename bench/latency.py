@@ -65,9 +65,9 @@ def main() -> dict:
     from lerobot.policies.factory import make_policy
     from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
-    from lerobot_cnmp.conditions import Condition, encode_conditions
-    from lerobot_cnmp.configuration_cnmp import CNMPConfig
-    from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
+    from lerobot_cnmp.execution.conditions import Condition, encode_conditions
+    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+    from lerobot_cnmp.policy.processor_cnmp import make_cnmp_pre_post_processors
 
     meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_obstacle2d", root=args.dataset)
     cfg = CNMPConfig(device="cpu", state_tracks_action=True)  # the obstacle sim: SM = action, state reaches it

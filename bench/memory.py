@@ -49,7 +49,7 @@ API_TRAIN = """
 import sys
 sys.path.insert(0, {bench!r})
 from common import DATASET, api_model, config
-from lerobot_cnmp.data import load_demos
+from lerobot_cnmp.data.demos import load_demos
 cfg = config()
 model = api_model(cfg)
 model.fit(load_demos(DATASET)["demos"], steps={steps}, batch_size=cfg["batch_size"], progress=False)

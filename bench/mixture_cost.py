@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import CONFIG, DATASET, MIXTURE_SETTINGS, add_mixture_arguments, api_model, config, mixture_settings  # noqa: E402
 from time_to_error import PHASES, first_below, validation_set  # noqa: E402
 
-from lerobot_cnmp.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
+from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
 
 
 def validation_nll(model, val) -> float:
@@ -54,7 +54,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> tuple
     """(steps, training seconds, validation NLL) every ``every`` steps, and the fitted model's CNMPConfig."""
     import torch
 
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     torch.manual_seed(seed)
     model = api_model(cfg)

@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, make_sim, provenance, resolve_checkpoint  # noqa: E402
 
-SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.envs.configs, default checkpoint, its config)
+SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.sims.configs, default checkpoint, its config)
     "obstacle2d": ("CNMPObstacle2DEnv", "outputs/main", "configs/cnmp_obstacle2d.json"),
     "pickplace": ("CNMPPickPlaceEnv", "outputs/pickplace", "configs/cnmp_pickplace.json"),
     "weights": ("CNMPWeightsEnv", "outputs/weights", "configs/cnmp_weights.json"),
@@ -40,7 +40,7 @@ SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.envs.configs, default ch
 
 
 def env_config(sim: str):
-    from lerobot_cnmp.envs import configs
+    from lerobot_cnmp.sims import configs
 
     return getattr(configs, SIMS[sim][0])(render_mode=None)
 
@@ -102,7 +102,7 @@ def run_rtc(policy, pre, post, sim: str, episodes: int, seed: int, chunk: int, h
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceEngine
 
-    import lerobot_cnmp.envs  # noqa: F401  (registers the gym ids)
+    import lerobot_cnmp.sims  # noqa: F401  (registers the gym ids)
 
     from lerobot.envs.factory import make_env_pre_post_processors
 
@@ -177,7 +177,7 @@ def run_rtc(policy, pre, post, sim: str, episodes: int, seed: int, chunk: int, h
 
 def demo_largest_step(sim: str, ckpt: Path) -> float | None:
     """The largest change between consecutive actions in the checkpoint's training demos (env units)."""
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     train_cfg = Path(ckpt) / "train_config.json"
     if not train_cfg.is_file():

@@ -69,7 +69,7 @@ def draw_tests(means: np.ndarray, rng: np.random.Generator) -> list[tuple[int, f
 
 
 def condition_sets(tests, means):
-    from lerobot_cnmp.conditions import Condition
+    from lerobot_cnmp.execution.conditions import Condition
 
     x = np.linspace(0.0, 1.0, STEPS)
     return [[Condition(float(x[k]), (y0,)), Condition(1.0, (float(means[mode, -1]),))]
@@ -99,7 +99,7 @@ def main() -> dict:
     import torch
 
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.baselines import ProMPBaseline
+    from lerobot_cnmp.promp.baselines import ProMPBaseline
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", 2)))  # 2 unless the environment says
     rng = np.random.default_rng(args.seed)

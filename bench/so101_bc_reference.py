@@ -113,7 +113,7 @@ def main() -> dict:
 
     import gymnasium as gym
 
-    import lerobot_cnmp.envs  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
+    import lerobot_cnmp.sims  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
 
     x, y, demo_length = load_frames(args.dataset)
     env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)

@@ -89,7 +89,7 @@ def main() -> dict:
 
     import gymnasium as gym
 
-    import lerobot_cnmp.envs  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
+    import lerobot_cnmp.sims  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
 
     ckpt, policy, pre, post = load_checkpoint_policy(args, "cnmp_so101", CONFIG)
     env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)

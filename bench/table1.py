@@ -41,7 +41,7 @@ def execute(policy, pre, post, gammas: list | None, episodes: int, seed: int) ->
     """Success per episode: one per γ of ``gammas``, or ``episodes`` with γ drawn by the env."""
     from lerobot.scripts.lerobot_eval import rollout
 
-    from lerobot_cnmp.envs.configs import CNMPPickPlaceEnv
+    from lerobot_cnmp.sims.configs import CNMPPickPlaceEnv
 
     runs = [(g, 1) for g in gammas] if gammas else [(None, episodes)]
     out = []
@@ -61,8 +61,8 @@ def plot_fig8(model, demos, gammas, phases, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lerobot_cnmp.conditions import Condition
-    from lerobot_cnmp.envs.pickplace import JOINT_NAMES, reference_trajectory
+    from lerobot_cnmp.execution.conditions import Condition
+    from lerobot_cnmp.sims.pickplace.env import JOINT_NAMES, reference_trajectory
 
     joints = (1, 2, 3)  # shoulder, elbow, wrist 1: the joints the arc moves most
     fig, axes = plt.subplots(len(joints), len(gammas), figsize=(4.2 * len(gammas), 2.6 * len(joints)), sharex=True)
@@ -100,9 +100,9 @@ def main() -> dict:
     args = p.parse_args()
 
     from lerobot_cnmp.api import CNMPModel, load_pretrained
-    from lerobot_cnmp.conditions import Condition
-    from lerobot_cnmp.data import load_demos
-    from lerobot_cnmp.envs.pickplace import (JOINT_NAMES, PAPER_EXTRAPOLATION, PAPER_INTERPOLATION,
+    from lerobot_cnmp.execution.conditions import Condition
+    from lerobot_cnmp.data.demos import load_demos
+    from lerobot_cnmp.sims.pickplace.env import (JOINT_NAMES, PAPER_EXTRAPOLATION, PAPER_INTERPOLATION,
                                              is_extrapolation, reference_trajectory)
 
     demos = load_demos(REPO / "datasets" / "cnmp_pickplace")["demos"]

@@ -37,8 +37,8 @@ PHASES = np.linspace(0.0, 1.0, 200)
 
 def validation_set(n: int, seed: int):
     """``n`` fresh tasks: (conditions: start + a via point, true path [200, 2])."""
-    from lerobot_cnmp.conditions import Condition
-    from lerobot_cnmp.envs.obstacle2d import Obstacle2DTask
+    from lerobot_cnmp.execution.conditions import Condition
+    from lerobot_cnmp.sims.obstacle2d.env import Obstacle2DTask
 
     rng = np.random.default_rng(seed)
     out = []
@@ -63,7 +63,7 @@ def first_below(points: list[tuple[int, float, float]], threshold: float):
 
 
 def run_api(cfg: dict, steps: int, every: int, val) -> list[tuple[int, float, float]]:
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     demos = load_demos(DATASET)["demos"]
     model = api_model(cfg)

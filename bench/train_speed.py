@@ -99,7 +99,7 @@ def resampled_dataset(src: Path, dst: Path, frames: int, episodes: int) -> Path:
 
 
 def measure(config: Path, cfg: dict, dataset: Path, batch_size: int, steps: int, extra: list[str]) -> dict:
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     demos = load_demos(dataset)
     model = api_model(cfg)
@@ -135,7 +135,7 @@ def main() -> dict:
         runs["dataset"] = measure(config, cfg, dataset_root(cfg), args.batch_size, args.steps, extra)
         # The paper's setting (one demo, one draw per step), to set beside the original code's ~1.5 ms/step.
         batch1 = {**cfg, "policy": {**cfg["policy"], "draws_per_sample": 1}}
-        from lerobot_cnmp.data import load_demos
+        from lerobot_cnmp.data.demos import load_demos
 
         step_ms_batch1 = 1e3 / median_rate(api_model(batch1), load_demos(dataset_root(cfg))["demos"], 1, args.steps)
         if args.long_frames:

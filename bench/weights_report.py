@@ -31,8 +31,8 @@ AFTER_LIFT_STEP = 112
 def start_and_lift(env, shape: int, mass: float):
     """The expert's run on (shape, mass) up to just after the lift: the conditions (start at t = 0, the state
     sensed after the lift) that the weights reports give the model."""
-    from lerobot_cnmp.conditions import Condition
-    from lerobot_cnmp.experts.weights import WeightsExpert
+    from lerobot_cnmp.execution.conditions import Condition
+    from lerobot_cnmp.sims.weights.expert import WeightsExpert
 
     obs, _ = env.reset(seed=0, options={"shape": shape, "mass": mass})
     expert = WeightsExpert(env)
@@ -51,7 +51,7 @@ def main() -> dict:
     args = p.parse_args()
 
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.envs.weights import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY, WeightsEnv
+    from lerobot_cnmp.sims.weights.env import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY, WeightsEnv
 
     ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
     model = CNMPModel.load(ckpt)

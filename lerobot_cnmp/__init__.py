@@ -9,10 +9,10 @@ Importing this package registers, with LeRobot and gymnasium:
   ``cnmp_so101_scripted`` (``--teleop.type``).
 """
 
-from lerobot_cnmp.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.configuration_promp import ProMPConfig  # --policy.type=promp: the open-loop baseline, evaluated by lerobot-eval
-from lerobot_cnmp import envs  # noqa: F401  (registers env configs and gymnasium ids)
-from lerobot_cnmp import robot_so101  # noqa: F401  (registers --robot.type=cnmp_so101_mujoco, --teleop.type=cnmp_so101_scripted)
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.promp.configuration_promp import ProMPConfig  # --policy.type=promp: the open-loop baseline, evaluated by lerobot-eval
+from lerobot_cnmp import sims  # noqa: F401  (registers env configs and gymnasium ids)
+from lerobot_cnmp.sims.so101 import robot  # noqa: F401  (registers --robot.type=cnmp_so101_mujoco, --teleop.type=cnmp_so101_scripted)
 
 __all__ = ["CNMPConfig", "ProMPConfig"]
 __version__ = "0.1.0"

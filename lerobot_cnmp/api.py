@@ -20,10 +20,10 @@ from tqdm.auto import trange
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_cnmp.bank import EpisodeBank
-from lerobot_cnmp.conditions import Condition, layout_size
-from lerobot_cnmp.configuration_cnmp import TASK_PARAMS, CNMPConfig
-from lerobot_cnmp.modeling_cnmp import CNMPPolicy, Context
+from lerobot_cnmp.data.bank import EpisodeBank
+from lerobot_cnmp.execution.conditions import Condition, layout_size
+from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS, CNMPConfig
+from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy, Context
 
 __all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos", "sm_stats"]
 
@@ -246,7 +246,7 @@ class CNMPModel:
     def save(self, path: str | Path) -> Path:
         """Write a LeRobot checkpoint: config.json, model.safetensors (with the normalization statistics) and the
         processors (identity normalizers)."""
-        from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
+        from lerobot_cnmp.policy.processor_cnmp import make_cnmp_pre_post_processors
 
         self._require_fitted()
         path = Path(path)

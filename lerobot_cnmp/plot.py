@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_cnmp.conditions import Condition
+from lerobot_cnmp.execution.conditions import Condition
 
 Predictor = Callable[[np.ndarray, list[Condition]], tuple[np.ndarray, np.ndarray]]
 
@@ -104,8 +104,8 @@ def mode_colors(demos: list[np.ndarray]) -> list[str]:
 def paper_figure(checkpoint: str | Path, dataset: str | Path, out: str | Path) -> Path:
     """The paper's Fig. 4 (CNMP row) for the obstacle task, from a checkpoint and its dataset."""
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.data import load_demos
-    from lerobot_cnmp.envs.obstacle2d import OBSTACLE_CENTER, OBSTACLE_RADIUS, PAPER_CONDITIONS
+    from lerobot_cnmp.data.demos import load_demos
+    from lerobot_cnmp.sims.obstacle2d.env import OBSTACLE_CENTER, OBSTACLE_RADIUS, PAPER_CONDITIONS
 
     model = CNMPModel.load(checkpoint)
     data = load_demos(dataset)

@@ -1,6 +1,6 @@
 """Record scripted demonstrations of a CNMP sim into a LeRobotDataset (v3).
 
-Generic over the sims of :data:`lerobot_cnmp.envs.SIMS`: the sim's ``EnvConfig`` builds the env, its expert
+Generic over the sims of :data:`lerobot_cnmp.sims.SIMS`: the sim's ``EnvConfig`` builds the env, its expert
 drives it for ``demo_length`` steps, and each frame stores the observation *before* the action together with
 the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` at its last step). Vector
 features are stored as float32; image features (``pixels/<name>`` in the EnvConfig, uint8 H x W x C) as
@@ -31,7 +31,7 @@ import numpy as np
 from lerobot.configs import FeatureType
 from tqdm import tqdm
 
-from lerobot_cnmp.envs import SIMS, SimSpec
+from lerobot_cnmp.sims import SIMS, SimSpec
 
 IMAGE_WRITER_THREADS = 2  # threads writing the PNG frames of image features
 
@@ -256,7 +256,7 @@ def record_dataset(
     """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
 
     Args:
-        sim: a key of :data:`lerobot_cnmp.envs.SIMS`, e.g. ``"cnmp_obstacle2d"``.
+        sim: a key of :data:`lerobot_cnmp.sims.SIMS`, e.g. ``"cnmp_obstacle2d"``.
         root: the dataset folder; must not exist unless ``overwrite`` (replaced only once the new one is done).
         n_episodes: number of demos (the sim's default when None).
         seed: episode ``i`` is reset with ``seed + i``.

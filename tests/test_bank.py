@@ -1,4 +1,4 @@
-"""The in-memory demonstrations and the training draw (lerobot_cnmp.bank): whole-episode draws, phases from
+"""The in-memory demonstrations and the training draw (lerobot_cnmp.data.bank): whole-episode draws, phases from
 timestamps, length-proportional episode sampling, one sampler for the API and lerobot-train."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import torch
 
 from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-from lerobot_cnmp import sm_spec
-from lerobot_cnmp.bank import EpisodeBank, floored_std
+from lerobot_cnmp.data import sm_spec
+from lerobot_cnmp.data.bank import EpisodeBank, floored_std
 
 REPO = Path(__file__).resolve().parents[1]
 DATASET = REPO / "datasets" / "cnmp_obstacle2d"
@@ -48,7 +48,7 @@ def test_dataset_bank_reads_the_sm_columns_and_phases():
     torch.testing.assert_close(bank.phase[rows], torch.arange(200, dtype=torch.float32) / 199)
     assert bank.median_duration_s() == pytest.approx(199 / 50)
     # the values are the dataset's action column
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     np.testing.assert_array_equal(bank.values[rows].numpy(), load_demos(DATASET)["demos"][3])
 

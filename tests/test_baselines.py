@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lerobot_cnmp.baselines import DMPBaseline, ProMPBaseline
-from lerobot_cnmp.conditions import Condition
+from lerobot_cnmp.promp.baselines import DMPBaseline, ProMPBaseline
+from lerobot_cnmp.execution.conditions import Condition
 
 
 @pytest.fixture(scope="module")

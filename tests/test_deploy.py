@@ -123,7 +123,7 @@ def test_robot_client_round_trip_with_lerobot_cnmp_serve_on_loopback(trained):
     from lerobot.async_inference.configs import PolicyServerConfig, RobotClientConfig
     from lerobot.async_inference.robot_client import RobotClient
 
-    from lerobot_cnmp.robot_so101 import SO101MujocoConfig
+    from lerobot_cnmp.sims.so101.robot import SO101MujocoConfig
     from lerobot_cnmp.serve import start_server
 
     port = _free_port()
@@ -164,8 +164,8 @@ def test_robot_client_round_trip_with_lerobot_cnmp_serve_on_loopback(trained):
 def test_scripted_leader_moves_on_the_wall_clock_and_survives_stalls(monkeypatch):
     """A stall of the recorder's loop mid-episode (a loaded machine) neither restarts the demo nor slows it;
     the pause after a whole demo (the recorder saving the episode) starts the next one."""
-    from lerobot_cnmp.robot_so101 import SO101ScriptedTeleop, SO101ScriptedTeleopConfig
-    from lerobot_cnmp.robot_so101 import so101_mujoco
+    from lerobot_cnmp.sims.so101.robot import SO101ScriptedTeleop, SO101ScriptedTeleopConfig
+    from lerobot_cnmp.sims.so101.robot import so101_mujoco
 
     clock = [100.0]
     monkeypatch.setattr(so101_mujoco.time, "perf_counter", lambda: clock[0])

@@ -16,9 +16,10 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.api import CNMPModel, load_pretrained
-from lerobot_cnmp.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.executor import ExecutionConfig, parse_conditions
-from lerobot_cnmp.modeling_cnmp import CNMPPolicy
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.execution.config import ExecutionConfig
+from lerobot_cnmp.execution.executor import parse_conditions
+from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
 
 T = 100
 FPS = 50.0
@@ -199,7 +200,7 @@ def test_phase_stop_timeout_releases_a_blocked_robot(policy, caplog):
         policy.select_action(blocked)
         far = {**blocked, OBS_STATE: torch.tensor([[5.0, 5.0]])}  # stuck far from every commanded point
         phases = []
-        with caplog.at_level(logging.WARNING, logger="lerobot_cnmp.executor"):
+        with caplog.at_level(logging.WARNING, logger="lerobot_cnmp.execution.executor"):
             for _ in range(9):
                 policy.select_action(far)
                 phases.append(float(policy.executor.phase[0]))

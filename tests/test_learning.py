@@ -31,7 +31,7 @@ def success_rate(ckpt: Path, episodes: int, seed: int) -> float:
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_cnmp.api import load_pretrained
-    from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
+    from lerobot_cnmp.sims.configs import CNMPObstacle2DEnv
 
     policy, pre, post = load_pretrained(ckpt)
     env, env_pre, env_post = make_sim(CNMPObstacle2DEnv(conditions="random", render_mode=None), policy, 10)
@@ -48,7 +48,7 @@ def success_rate(ckpt: Path, episodes: int, seed: int) -> float:
 def fit_and_save(steps: int, out: Path) -> Path:
     from common import api_model, config
 
-    from lerobot_cnmp.data import load_demos
+    from lerobot_cnmp.data.demos import load_demos
 
     torch.set_num_threads(1)
     demos = load_demos(DATASET)["demos"][:N_DEMOS]

@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("metaworld")
 
-import lerobot_cnmp.envs  # noqa: E402,F401
-from lerobot_cnmp.envs.configs import CNMPMetaWorldEnv  # noqa: E402
-from lerobot_cnmp.envs.metaworld import MetaWorldEnv, v3_task_names  # noqa: E402
-from lerobot_cnmp.experts.metaworld import MetaWorldExpert, expert_policy_name  # noqa: E402
+import lerobot_cnmp.sims  # noqa: E402,F401
+from lerobot_cnmp.sims.configs import CNMPMetaWorldEnv  # noqa: E402
+from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv, v3_task_names  # noqa: E402
+from lerobot_cnmp.sims.metaworld.expert import MetaWorldExpert, expert_policy_name  # noqa: E402
 
 
 def test_task_names_checked():

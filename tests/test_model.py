@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from lerobot_cnmp.api import CNMPModel, Condition, pad_demos
-from lerobot_cnmp.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.modeling_cnmp import CNMP, Context, Episodes, NumpyCNMP, Targets, sample_context_and_targets
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.policy.modeling_cnmp import CNMP, Context, Episodes, NumpyCNMP, Targets, sample_context_and_targets
 
 
 def toy_demos(n=8, t=50, seed=0):

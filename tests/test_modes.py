@@ -1,9 +1,9 @@
-"""The mode rule of a mixture CNMP's execution (lerobot_cnmp.modes), on its own."""
+"""The mode rule of a mixture CNMP's execution (lerobot_cnmp.execution.modes), on its own."""
 
 import pytest
 import torch
 
-from lerobot_cnmp.modes import ModeSelector
+from lerobot_cnmp.execution.modes import ModeSelector
 
 
 def test_first_step_takes_the_most_probable_expert_and_keeps_it_within_the_margin():

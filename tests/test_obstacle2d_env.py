@@ -11,10 +11,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import lerobot_cnmp.envs  # noqa: F401  (registers the gym id and the EnvConfig)
-from lerobot_cnmp.conditions import Condition, conditions_from_vector
-from lerobot_cnmp.envs.configs import CNMPObstacle2DEnv
-from lerobot_cnmp.envs.obstacle2d import (
+import lerobot_cnmp.sims  # noqa: F401  (registers the gym id and the EnvConfig)
+from lerobot_cnmp.execution.conditions import Condition, conditions_from_vector
+from lerobot_cnmp.sims.configs import CNMPObstacle2DEnv
+from lerobot_cnmp.sims.obstacle2d.env import (
     AGENT_RADIUS,
     CONDITION_CHOICES,
     ENV_STATE_DIM,
@@ -28,7 +28,7 @@ from lerobot_cnmp.envs.obstacle2d import (
     Obstacle2DEnv,
     Obstacle2DTask,
 )
-from lerobot_cnmp.experts.obstacle2d import Obstacle2DExpert
+from lerobot_cnmp.sims.obstacle2d.expert import Obstacle2DExpert
 
 T = 200
 
@@ -267,7 +267,7 @@ def test_gym_make_and_lerobot_make_env():
 # --- the shared family, the new pushes and the rate-limited actuator (issue 16) --------------------------
 
 def test_shared_family_modes_share_start_and_goal_and_keep_clearance():
-    from lerobot_cnmp.envs.obstacle2d import SHARED_Y0_RANGE
+    from lerobot_cnmp.sims.obstacle2d.env import SHARED_Y0_RANGE
 
     rng = np.random.default_rng(0)
     tau = np.linspace(0.0, 1.0, 2001)
@@ -318,7 +318,7 @@ def test_shared_family_rejects_the_paper_sets():
 
 @pytest.mark.parametrize("perturbation", ["push_toward", "push_random"])
 def test_new_pushes(perturbation):
-    from lerobot_cnmp.envs.obstacle2d import PUSH_MIN_CLEARANCE
+    from lerobot_cnmp.sims.obstacle2d.env import PUSH_MIN_CLEARANCE
 
     base = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
     env = Obstacle2DEnv(conditions="random", perturbation=perturbation, terminate_on_success=False, render_mode=None)
@@ -342,7 +342,7 @@ def test_new_pushes(perturbation):
 
 
 def test_rate_limited_actuator_lags_and_open_loop_falls_behind():
-    from lerobot_cnmp.envs.obstacle2d import CONTROL_FPS, RATE_LIMIT
+    from lerobot_cnmp.sims.obstacle2d.env import CONTROL_FPS, RATE_LIMIT
 
     servo = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
     lagging = Obstacle2DEnv(conditions="random", actuator="rate_limited", terminate_on_success=False, render_mode=None)

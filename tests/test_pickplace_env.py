@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from lerobot_cnmp.envs.pickplace import (
+from lerobot_cnmp.sims.pickplace.env import (
     PAPER_EXTRAPOLATION,
     PAPER_INTERPOLATION,
     PAPER_TRAIN_GRID,
@@ -25,7 +25,7 @@ from lerobot_cnmp.envs.pickplace import (
     is_extrapolation,
     reference_trajectory,
 )
-from lerobot_cnmp.experts.pickplace import PickPlaceExpert
+from lerobot_cnmp.sims.pickplace.expert import PickPlaceExpert
 
 T = 200
 

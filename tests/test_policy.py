@@ -18,11 +18,11 @@ from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.api import load_pretrained, sm_stats
-from lerobot_cnmp.conditions import Condition, encode_conditions
-from lerobot_cnmp.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.executor import ExecutionConfig
-from lerobot_cnmp.modeling_cnmp import CNMPPolicy
-from lerobot_cnmp.processor_cnmp import make_cnmp_pre_post_processors
+from lerobot_cnmp.execution.conditions import Condition, encode_conditions
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.execution.config import ExecutionConfig
+from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
+from lerobot_cnmp.policy.processor_cnmp import make_cnmp_pre_post_processors
 
 REPO = Path(__file__).resolve().parents[1]
 DATASET = REPO / "datasets" / "cnmp_obstacle2d"
@@ -458,8 +458,8 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
     from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import rollout
 
-    from lerobot_cnmp.configuration_cnmp import TASK_PARAMS
-    from lerobot_cnmp.envs.configs import CNMPPickPlaceEnv
+    from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS
+    from lerobot_cnmp.sims.configs import CNMPPickPlaceEnv
 
     root = REPO / "datasets" / "cnmp_pickplace"
     pp_meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_pickplace", root=root)
@@ -550,7 +550,7 @@ class _Frames:
 
 
 def test_images_condition_the_cnmp_through_a_conv_encoder():
-    from lerobot_cnmp.bank import EpisodeBank
+    from lerobot_cnmp.data.bank import EpisodeBank
 
     torch.manual_seed(0)
     policy = CNMPPolicy(image_config())

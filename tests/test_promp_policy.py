@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_cnmp.baselines import ProMPBaseline
-from lerobot_cnmp.conditions import Condition, encode_conditions
-from lerobot_cnmp.configuration_promp import ProMPConfig
-from lerobot_cnmp.data import load_demos
-from lerobot_cnmp.fit_promp import fit, main
-from lerobot_cnmp.modeling_promp import ProMPPolicy
+from lerobot_cnmp.promp.baselines import ProMPBaseline
+from lerobot_cnmp.execution.conditions import Condition, encode_conditions
+from lerobot_cnmp.promp.configuration_promp import ProMPConfig
+from lerobot_cnmp.data.demos import load_demos
+from lerobot_cnmp.promp.fit import fit, main
+from lerobot_cnmp.promp.modeling_promp import ProMPPolicy
 
 REPO = Path(__file__).resolve().parents[1]
 

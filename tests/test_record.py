@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 
 from lerobot_cnmp import record as record_mod
-from lerobot_cnmp.conditions import conditions_from_vector
-from lerobot_cnmp.envs import SIMS
-from lerobot_cnmp.experts.obstacle2d import Obstacle2DExpert
+from lerobot_cnmp.execution.conditions import conditions_from_vector
+from lerobot_cnmp.sims import SIMS
+from lerobot_cnmp.sims.obstacle2d.expert import Obstacle2DExpert
 
 SIM = "cnmp_obstacle2d"
 REPO = "lerobot-cnmp/test_obstacle2d"
@@ -148,7 +148,7 @@ def test_record_room_images(tmp_path):
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from lerobot_cnmp.envs.room import RoomEnv
+    from lerobot_cnmp.sims.room.env import RoomEnv
 
     repo = "lerobot-cnmp/test_room"
     root = record_mod.record_dataset("cnmp_room", tmp_path / "room", n_episodes=2, seed=5, repo_id=repo,
@@ -179,7 +179,7 @@ def test_record_room_images(tmp_path):
 
 def test_record_shared_family(tmp_path):
     """``--sim cnmp_obstacle2d_shared``: both modes start and end at the same heights (family ``shared``)."""
-    from lerobot_cnmp.envs.obstacle2d import SHARED_Y0_RANGE
+    from lerobot_cnmp.sims.obstacle2d.env import SHARED_Y0_RANGE
 
     root = record_mod.record_dataset("cnmp_obstacle2d_shared", tmp_path / "ds", n_episodes=4, seed=0, progress=False)
     df = _parquet(root)

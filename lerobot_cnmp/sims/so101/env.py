@@ -1,0 +1,344 @@
+"""The third-party SO-101 pick-and-place sim (``lerobot-env-so101==0.4.0``) as a CNMP sim:
+``--env.type=cnmp_so101``, gymnasium id ``cnmp/SO101PickPlace-v0``.
+
+A thin wrapper: the physics, the IK, the task, its randomization and its success rule are the plugin's
+``SO101PickPlaceGymEnv`` (gym id ``lerobot_env_so101/SO101PickPlace-v0``), built here with the plugin's own
+class. What this module adds:
+
+- :class:`CNMPSO101Env`, an ``EnvConfig`` with the features the PickPlace task really has. The plugin's own
+  ``--env.type=so101`` config is the pick-only task's: it declares a 3-value ``environment_state`` (PickPlace
+  gives 6: block and goal), defaults to ``random_block_position=False`` and to ``action_scale=1.0`` (1 m per
+  unit action, while its scripted controllers are calibrated for 0.025).
+- :class:`SO101Wrapper`, which reports the plugin's success flag ``info["succeed"]`` as LeRobot's
+  ``info["is_success"]`` (stock ``lerobot-eval`` reads only the latter and would count 0 %), can keep an
+  episode running past success (``terminate_on_success=False``, for recording fixed-length demos; the
+  plugin always terminates on success), names the task (``task`` / ``task_description``, which
+  ``lerobot-eval`` looks up in every sub-env) and can add a camera image *next to* ``environment_state``
+  (the plugin's ``image_obs=True`` replaces it).
+
+The plugin (an optional extra: ``pip install -e ".[so101]"``) is imported only when an env is built, so
+importing this module, and ``lerobot_cnmp.sims``, works without it.
+
+Facts of the plugin's PickPlace task (read from its source, v0.4.0):
+
+- control: 10 Hz (``control_dt`` 0.1 s = 50 MuJoCo steps of 2 ms); the registered episode is 300 steps.
+- action ``[dx, dy, dz, grasp]`` in [-1, 1]^3 x [0, 1]: ``dx, dy, dz`` move the IK target of the grasp
+  point between the jaws (``env.ik_point_pos``) by ``action_scale`` metres per unit (target clipped to the
+  box x in [0.1, 0.5], y in [-0.3, 0.3], z in [0, 0.4] m); the IK keeps the gripper pointing straight down.
+  An all-zero delta holds the current pose. ``grasp`` is an absolute jaw command, 0 closed, 1 open.
+- ``agent_pos`` (14, float32): the 5 arm joint angles (rad) ``shoulder_pan, shoulder_lift, elbow_flex,
+  wrist_flex, wrist_roll``, their velocities (rad/s), ``gripper_pose`` (the gripper *command* mapped to
+  [-1, 1]: -1 closed, +1 open, not the measured jaw) and the position (m) of the ``gripperframe`` site on the
+  fixed jaw (not the grasp point the action moves).
+- ``environment_state`` (6, float32): the block centre (m) and the goal, where the block centre should rest
+  (its z is the block's half size, 0.02 m). World frame: the arm's base at the origin, x forward, z up.
+- reset: with ``random_block_position`` the block (x, y) and the goal (x, y) are drawn uniformly from
+  x in [0.15, 0.30] m, y in [-0.10, 0.10] m by the env's ``np_random`` (seeded by ``reset(seed=...)``), the
+  goal redrawn until it is at least 8 cm from the block; without it, block (0.25, 0) and goal (0.20, 0.08).
+- success (``info["succeed"]``, every step): the block was lifted more than 3 cm above its start at some
+  point of the episode, its centre is within 3 cm (in x, y) of the goal, the jaw (measured) is more than
+  half open and the block moves slower than 1 cm/s. The episode terminates on success or when the block
+  leaves x in [0.08, 0.40], y in [-0.20, 0.20] m; reward 1 on success, else 0.
+- rendering: the ``front`` camera; the SO-101 meshes have 322k faces and the scene casts shadows, so with
+  software EGL (no GPU) a 128 x 128 frame takes about 0.6 to 0.9 s; the wrapper renders with shadows,
+  reflections and the skybox off (~0.1 s). Pixels are off unless asked
+  (``image_obs``); ``render()`` builds its renderer on first use only.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from dataclasses import dataclass, field  # noqa: E402
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+from gymnasium import spaces  # noqa: E402
+from lerobot.configs import FeatureType, PolicyFeature  # noqa: E402
+from lerobot.envs.configs import EnvConfig  # noqa: E402
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE  # noqa: E402
+
+from lerobot_cnmp.sims.configs import CNMPSimConfig  # noqa: E402
+
+PLUGIN = "lerobot-env-so101"
+PLUGIN_VERSION = "0.4.0"
+SO101_GYM_ID = "cnmp/SO101PickPlace-v0"
+PLUGIN_GYM_ID = "lerobot_env_so101/SO101PickPlace-v0"  # the plugin's own id of the task we wrap
+CONTROL_FPS = 10
+DEFAULT_MAX_EPISODE_STEPS = 300  # the plugin registers SO101PickPlace-v0 with 300 steps
+DEFAULT_ACTION_SCALE = 0.025  # lerobot_env_so101.policy.DEFAULT_ACTION_SCALE, what its controllers assume
+DEFAULT_RENDER_SIZE = 128  # the plugin's GymRenderingSpec default
+CAMERA = "front"
+
+ACTION_NAMES = ["dx", "dy", "dz", "grasp"]
+ARM_JOINT_NAMES = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
+# = lerobot_env_so101.policy.OBS_FIELD_NAMES[:14] (tests/test_so101_env.py checks it)
+AGENT_POS_NAMES = [
+    *(f"qpos_{n}" for n in ARM_JOINT_NAMES),
+    *(f"qvel_{n}" for n in ARM_JOINT_NAMES),
+    "gripper_pose",
+    "ee_x",
+    "ee_y",
+    "ee_z",
+]
+ENV_STATE_NAMES = ["block_x", "block_y", "block_z", "goal_x", "goal_y", "goal_z"]
+TASK_DESCRIPTION = "pick up the cube and place it on the goal position"
+
+
+def _require_plugin():
+    try:
+        import lerobot_env_so101  # noqa: F401
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError(
+            f"the cnmp_so101 sim needs the {PLUGIN} plugin: pip install -e \".[so101]\" "
+            f"(or pip install {PLUGIN}=={PLUGIN_VERSION})"
+        ) from e
+    from lerobot_env_so101 import pick_place_env
+
+    return pick_place_env
+
+
+class SO101Wrapper(gym.Wrapper):
+    """The plugin's PickPlace env with LeRobot's success key, optional termination on success, the task's
+    name, and optionally the camera image.
+
+    Every step's info gets ``is_success`` = the plugin's ``succeed`` (which is kept). With
+    ``terminate_on_success=False`` a successful step is not terminal (the plugin's ``terminated`` on success
+    is cleared; a success implies the block lies within 3 cm of a goal inside [0.15, 0.30] x [-0.1, 0.1] m,
+    so it is never also out of the workspace, the plugin's other reason to terminate). With ``image_obs``
+    the observation also holds ``pixels["front"]``, the plugin's ``render()`` (uint8, H x W x 3).
+    """
+
+    def __init__(self, env: gym.Env, terminate_on_success: bool = True, image_obs: bool = False):
+        super().__init__(env)
+        self.terminate_on_success = bool(terminate_on_success)
+        self.image_obs = bool(image_obs)
+        if self.image_obs:
+            h, w = env.unwrapped._render_specs.height, env.unwrapped._render_specs.width
+            self.observation_space = spaces.Dict(
+                {
+                    **env.observation_space.spaces,
+                    "pixels": spaces.Dict({CAMERA: spaces.Box(0, 255, (h, w, 3), dtype=np.uint8)}),
+                }
+            )
+
+    @property
+    def task_description(self) -> str:
+        return TASK_DESCRIPTION
+
+    @property
+    def task(self) -> str:
+        """LeRobot's rollout looks this attribute up in every sub-env (async vector envs fail without it)."""
+        return TASK_DESCRIPTION
+
+    def _frame(self) -> np.ndarray:
+        """The plugin's front-camera render, with shadows, reflections and the skybox off: its 322k-face
+        meshes take ~0.6 s per 128 x 128 frame with them under software EGL (no GPU), ~0.1 s without, and
+        ``lerobot-eval`` renders every step of its first 10 episodes for the videos."""
+        import mujoco
+
+        base = self.env.unwrapped
+        frame = base.render()
+        viewer = getattr(base, "_viewer", None)
+        if viewer is not None and not getattr(self, "_fast_scene", False):
+            for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
+                         mujoco.mjtRndFlag.mjRND_SKYBOX):
+                viewer.scene.flags[flag] = 0
+            self._fast_scene = True
+            frame = base.render()
+        return np.asarray(frame, dtype=np.uint8).copy()
+
+    def _obs(self, obs: dict) -> dict:
+        if self.image_obs:
+            obs = {**obs, "pixels": {CAMERA: self._frame()}}
+        return obs
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        return self._obs(obs), {**info, "is_success": False}
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float64))
+        success = bool(info.get("succeed", False))
+        if success and not self.terminate_on_success:
+            terminated = False
+        return self._obs(obs), reward, bool(terminated), bool(truncated), {**info, "is_success": success}
+
+    def render(self):
+        if self.env.unwrapped.render_mode != "rgb_array":
+            return None
+        return self._frame()
+
+
+def make_so101_pickplace(
+    random_block_position: bool = True,
+    action_scale: float = DEFAULT_ACTION_SCALE,
+    image_obs: bool = False,
+    render_mode: str | None = "rgb_array",
+    render_size: int = DEFAULT_RENDER_SIZE,
+    terminate_on_success: bool = True,
+) -> gym.Env:
+    """The entry point of ``cnmp/SO101PickPlace-v0``: the plugin's ``SO101PickPlaceGymEnv`` (state
+    observation; top-down IK and jaw pads on, as its own ``SO101PickPlace-v0``) in :class:`SO101Wrapper`.
+    ``gym.make`` adds the time limit (300 steps unless ``max_episode_steps`` is given)."""
+    pick_place_env = _require_plugin()
+    from lerobot_env_so101.mujoco_env import GymRenderingSpec
+
+    env = pick_place_env.SO101PickPlaceGymEnv(
+        render_spec=GymRenderingSpec(height=int(render_size), width=int(render_size)),
+        render_mode=render_mode,
+        image_obs=False,  # its image_obs replaces environment_state; the wrapper adds the image instead
+        random_block_position=bool(random_block_position),
+        action_scale=float(action_scale),
+    )
+    return SO101Wrapper(env, terminate_on_success=terminate_on_success, image_obs=image_obs)
+
+
+if SO101_GYM_ID not in gym.registry:
+    gym.register(
+        id=SO101_GYM_ID,
+        entry_point="lerobot_cnmp.sims.so101.env:make_so101_pickplace",
+        max_episode_steps=DEFAULT_MAX_EPISODE_STEPS,
+    )
+
+
+@EnvConfig.register_subclass("cnmp_so101")
+@dataclass
+class CNMPSO101Env(CNMPSimConfig):
+    """The SO-101 arm picking a cube and placing it on a goal, both at random positions (the third-party
+    ``lerobot-env-so101==0.4.0`` plugin's ``SO101PickPlace-v0``, wrapped by :mod:`lerobot_cnmp.sims.so101.env`).
+
+    ``agent_pos`` (14) reaches the policy as ``observation.state``, ``environment_state`` (6: block x, y, z
+    and goal x, y, z, m) as ``observation.environment_state``; the action is ``[dx, dy, dz, grasp]``.
+
+    Fields:
+        task: gymnasium task name (the id is ``cnmp/<task>``).
+        fps: control frequency, Hz (the plugin's 0.1 s control step).
+        episode_length: steps before truncation (the plugin's 300; the scripted expert is done in ~65).
+        random_block_position: draw the block and the goal at each reset (default); False uses the
+            plugin's fixed block (0.25, 0) and goal (0.20, 0.08).
+        action_scale: metres per unit of ``dx, dy, dz`` (0.025, the plugin's controllers' scale; the
+            plugin's own default is 1.0).
+        image_obs: also observe the ``front`` camera as ``pixels/front`` (-> ``observation.images.front``),
+            ``render_size`` square; slow without a GPU (see the module docstring).
+        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
+    """
+
+    task: str | None = "SO101PickPlace-v0"
+    fps: int = CONTROL_FPS
+    episode_length: int = DEFAULT_MAX_EPISODE_STEPS
+    random_block_position: bool = True
+    action_scale: float = DEFAULT_ACTION_SCALE
+    image_obs: bool = False
+    render_size: int = DEFAULT_RENDER_SIZE
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(ACTION_NAMES),)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(len(AGENT_POS_NAMES),)),
+            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(len(ENV_STATE_NAMES),)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+            f"pixels/{CAMERA}": f"{OBS_IMAGES}.{CAMERA}",
+        }
+    )
+
+    def __post_init__(self):
+        self._check_choice("task", ("SO101PickPlace-v0",))
+        self._check_common()
+        if not self.action_scale > 0:
+            raise ValueError(f"action_scale must be positive, got {self.action_scale}")
+        # the image feature follows image_obs and render_size
+        if self.image_obs:
+            self.features[f"pixels/{CAMERA}"] = PolicyFeature(
+                type=FeatureType.VISUAL, shape=(self.render_size, self.render_size, 3)
+            )
+        else:
+            self.features.pop(f"pixels/{CAMERA}", None)
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            "random_block_position": self.random_block_position,
+            "action_scale": float(self.action_scale),
+            "image_obs": self.image_obs,
+            **self._common_gym_kwargs(),
+        }
+
+
+# --- the recorder's entry (``lerobot_cnmp.sims.SIMS["cnmp_so101"]``) -------------------------------------
+DEMO_LENGTH = 80  # 8 s: the expert is done (retreated) within 65 steps for seeds 0-399, then holds still
+DEFAULT_EPISODES = 200
+RECORD_CONDITIONS = "random"
+
+
+def _record_config_kwargs(conditions: str) -> dict:
+    if conditions != RECORD_CONDITIONS:
+        raise ValueError(
+            f"cnmp_so101 records random block and goal positions only (conditions {RECORD_CONDITIONS!r}), "
+            f"got {conditions!r}"
+        )
+    return {}
+
+
+def _episode_label(env) -> str:
+    return "goal ({:.3f}, {:.3f}) m".format(*env.goal_pos[:2])
+
+
+def sim_spec():
+    """The :class:`~lerobot_cnmp.sims.SimSpec` of ``cnmp_so101`` (built on call: ``lerobot_cnmp.sims``
+    defines SimSpec after importing this module)."""
+    from lerobot_cnmp.sims import SimSpec
+    from lerobot_cnmp.sims.so101.expert import SO101PickPlaceExpert
+
+    return SimSpec(
+        env_config_cls=CNMPSO101Env,
+        expert_cls=SO101PickPlaceExpert,
+        demo_length=DEMO_LENGTH,
+        default_episodes=DEFAULT_EPISODES,
+        default_conditions=RECORD_CONDITIONS,
+        feature_names={
+            "action": list(ACTION_NAMES),
+            "agent_pos": list(AGENT_POS_NAMES),
+            "environment_state": list(ENV_STATE_NAMES),
+        },
+        episode_label=_episode_label,
+        config_kwargs=_record_config_kwargs,
+        features_note=(
+            "For this sim the action is not a position-servo target but an increment: `action` is "
+            "`[dx, dy, dz, grasp]`, where dx, dy, dz "
+            f"in [-1, 1] move the IK target of the grasp point between the jaws by {DEFAULT_ACTION_SCALE:g} m "
+            "per unit (world frame: the arm's base at the origin, x forward, z up; the target is clipped to "
+            "x in [0.1, 0.5], y in [-0.3, 0.3], z in [0, 0.4] m, an all-zero delta holds the current pose) "
+            "and grasp in [0, 1] is an absolute jaw command (0 closed, 1 open). `observation.state` is the "
+            "plugin's `agent_pos`: the 5 arm joint angles (rad), their velocities (rad/s), `gripper_pose` "
+            "(the gripper *command* in [-1, 1], -1 closed, +1 open, not the measured jaw) and the position "
+            "(m) of the `gripperframe` site on the fixed jaw (not the grasp point the action moves). "
+            "`observation.environment_state` is the block centre as measured (m; it moves while carried) "
+            "followed by the goal (constant within an episode; goal_z = 0.02 m, the block's half size): the "
+            "episode's block start is block_x, block_y of its first frame."
+        ),
+        description=(
+            f"The SO-101 arm (5 arm joints and a one-joint gripper, all position-servoed; MuJoCo) of the third-party "
+            f"`{PLUGIN}=={PLUGIN_VERSION}` plugin's `SO101PickPlace-v0` task, wrapped by "
+            "`lerobot_cnmp.sims.so101.env` (physics, IK, task, randomization and success rule are the plugin's), "
+            "picks a 4 cm cube from the table and places it on a goal position. At each reset the block (x, "
+            "y) and the goal (x, y) are drawn uniformly from x in [0.15, 0.30] m, y in [-0.10, 0.10] m by "
+            "the env's RNG seeded with the reset seed, the goal redrawn until it is at least 8 cm from the "
+            "block. Control runs at 10 Hz (50 MuJoCo steps of 2 ms per step); the IK keeps the gripper "
+            "pointing straight down. Success (the plugin's `info[\"succeed\"]`, reported by the wrapper as "
+            "`info[\"is_success\"]`): the block was lifted more than 3 cm at some point, its centre rests "
+            "within 3 cm (in x, y) of the goal, the jaw is more than half open and the block moves slower "
+            "than 1 cm/s. The scripted expert is the plugin's `PickPlaceController` (hover over the block, "
+            "descend, close, lift, carry the block over the goal, lower, open, retreat), driven by the grasp "
+            "point, the block and the goal; it succeeds after 4.2 to 5.5 s and has retreated within 6.5 s. "
+            f"Demos are recorded for a fixed {DEMO_LENGTH} steps with the wrapper's termination on success "
+            "turned off (the arm holds still once retreated) and checked to succeed at the last step."
+        ),
+    )
