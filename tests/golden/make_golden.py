@@ -2,7 +2,8 @@
 
 For each committed CNMP training config (configs/cnmp_*.json, whose dataset is committed) this builds the
 policy on its dataset, takes a few optimizer steps (so the weights are not an initialization), saves the
-checkpoint (config.json + model.safetensors + processors) under tests/golden/<config>/ and records the
+checkpoint (config.json + model.safetensors + processors, and the initial weights as init.safetensors) under
+tests/golden/<config>/ and records the training losses and the
 actions of `select_action` and `predict_action_chunk` on a fixed observation sequence (the dataset's first
 episode) in actions.npz. The test reloads each checkpoint with the current code and requires bit-identical
 actions.
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import save_file
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -40,6 +42,22 @@ def observations(ds: LeRobotDataset, keys: list[str]) -> list[dict[str, torch.Te
     return out
 
 
+def train_steps(policy, n_episodes: int) -> list[float]:
+    """STEPS Adam steps on batches of 4 episodes with a fixed generator; the losses."""
+    opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(0)
+    policy.train()
+    losses = []
+    for _ in range(STEPS):
+        batch = {"episode_index": torch.arange(4) % n_episodes}
+        loss, _ = policy.forward(batch, generator=g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
 def record(name: str) -> None:
     raw = json.loads((REPO / "configs" / f"{name}.json").read_text())
     root = REPO / raw["dataset"]["root"]
@@ -54,19 +72,13 @@ def record(name: str) -> None:
     torch.manual_seed(0)
     policy = make_policy(cfg, ds_meta=meta)
     ds = LeRobotDataset(raw["dataset"]["repo_id"], root=root)
-    opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
-    g = torch.Generator().manual_seed(0)
-    policy.train()
-    for _ in range(STEPS):
-        batch = {"episode_index": torch.arange(4) % meta.total_episodes}
-        loss, _ = policy.forward(batch, generator=g)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    init = {k: v.detach().clone().contiguous() for k, v in policy.state_dict().items()}
+    losses = train_steps(policy, meta.total_episodes)
     policy.eval()
     out = HERE / name
     shutil.rmtree(out, ignore_errors=True)
     policy.save_pretrained(out)
+    save_file(init, str(out / "init.safetensors"))
     pre, post = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
     pre.save_pretrained(out)
     post.save_pretrained(out)
@@ -78,7 +90,7 @@ def record(name: str) -> None:
     torch.manual_seed(2)
     policy.reset()
     chunk = policy.predict_action_chunk(dict(obs[0])).numpy()
-    np.savez(out / "actions.npz", select_action=steps, chunk=chunk,
+    np.savez(out / "actions.npz", select_action=steps, chunk=chunk, losses=np.asarray(losses),
              **{f"obs.{k}": np.stack([o[k].numpy() for o in obs]) for k in keys})
     print(f"{name}: {steps.shape} actions, chunk {chunk.shape}, input {keys}")
 
