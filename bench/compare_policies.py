@@ -64,8 +64,8 @@ LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thous
 table says what each method reaches in ~2 min of CPU, not at its plateau.
 
 ```bash
-python bench/compare_policies.py --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
-python bench/compare_policies.py --report   # outputs/compare/report.md, docs/compare_policies.png and .md
+python -m bench.compare_policies --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
+python -m bench.compare_policies --report   # outputs/compare/report.md, docs/compare_policies.png and .md
 ```
 """
 
@@ -81,8 +81,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance  # noqa: E402
+from bench.common import REPO, provenance
 
 BIN = Path(sys.executable).parent
 OUT = REPO / "outputs" / "compare"
