@@ -94,8 +94,9 @@ def api_model(cfg: dict | None = None):
 
 
 def torch_threads(given: int | None, environ=os.environ) -> tuple[int, str]:
-    """(threads, where from) for both sides of a training comparison (API and lerobot-train): ``given`` (``--threads``), else the environment's
-    ``OMP_NUM_THREADS``, else one per CPU core. A value that is not an integer >= 1 is an error."""
+    """(threads, where from) for both sides of a training comparison (the API and lerobot-train): ``given``
+    (``--threads``), else the environment's ``OMP_NUM_THREADS``, else one per CPU core. A value that is not an
+    integer >= 1 is an error."""
     if given is not None:
         n, source = given, "--threads"
     elif environ.get("OMP_NUM_THREADS", "").strip():
@@ -151,8 +152,8 @@ def _matching_config(train_cfg: dict) -> Path | None:
     return None
 
 
-MIXTURE_FIELDS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef", "batch_entropy_coef",
-                  "gate_commit", "shared_decoder_layers")
+MIXTURE_FIELDS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef",
+                  "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
 """The mixture decoder's settings that a mixture bench takes on the command line and reports: CNMPConfig's
 fields of these names (their types, defaults and allowed values come from CNMPConfig)."""
 
@@ -193,8 +194,8 @@ def _policy_overrides(train_cfg: dict, committed: dict) -> dict:
     from lerobot_cnmp.execution.config import ExecutionConfig
     from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 
-    skip = ({f.name for f in dataclasses.fields(PreTrainedConfig)} | {f.name for f in dataclasses.fields(ExecutionConfig)}
-            | {"execution", *DATASET_RESOLVED})
+    skip = ({f.name for f in dataclasses.fields(PreTrainedConfig)}
+            | {f.name for f in dataclasses.fields(ExecutionConfig)} | {"execution", *DATASET_RESOLVED})
     fields = [f.name for f in dataclasses.fields(CNMPConfig) if f.name not in skip]
     resolved = draccus.encode(draccus.decode(CNMPConfig, {k: v for k, v in want.items() if k != "type"}))
     out: dict = {}

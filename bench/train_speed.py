@@ -113,18 +113,19 @@ def measure(config: Path, cfg: dict, dataset: Path, batch_size: int, steps: int,
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--config", type=Path, default=CONFIG, help="a lerobot-train config of configs/")
-    pre, _ = p.parse_known_args()
-    config = pre.config.resolve()
-    cfg = json.loads(config.read_text())
-    if not (dataset_root(cfg) / "meta" / "info.json").is_file():
-        p.error(f"no dataset at {dataset_root(cfg)}: record it with lerobot-cnmp-record first")
-    p.add_argument("--batch_size", type=int, default=cfg["batch_size"])
+    p.add_argument("--batch_size", type=int, default=None, help="(default: the config's)")
     p.add_argument("--steps", type=int, default=400)
     p.add_argument("--long_frames", type=int, default=1000, help="frames per episode of the long-episode run (0: skip)")
     p.add_argument("--long_episodes", type=int, default=16)
     p.add_argument("--lerobot_args", default="", help="extra lerobot-train overrides in one string, e.g. \"--num_workers=1\"")
     add_threads_argument(p)
     args = p.parse_args()
+    config = args.config.resolve()
+    cfg = json.loads(config.read_text())
+    if not (dataset_root(cfg) / "meta" / "info.json").is_file():
+        p.error(f"no dataset at {dataset_root(cfg)}: record it with lerobot-cnmp-record first")
+    if args.batch_size is None:
+        args.batch_size = cfg["batch_size"]
     try:
         threads, threads_from = torch_threads(args.threads)
     except ValueError as e:
