@@ -101,7 +101,7 @@ room_job() {
     "$VENV/bin/lerobot-eval" --policy.path="$ckpt" --env.type=cnmp_room --env.condition=$c --eval.n_episodes=50 \
         --eval.batch_size=10 --policy.device=cpu --output_dir="$out/eval_$c" --seed=100000
   done
-  "$PY" bench/room_fig6.py --checkpoint "$ckpt"
+  "$PY" -m bench.room_fig6 --checkpoint "$ckpt"
   "$PY" - "$out" <<'PYEOF'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1])

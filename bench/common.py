@@ -4,19 +4,24 @@ closed-loop helpers (an env observation as the policy's batch, the SM predicted 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
+
+from bench.settings import add_dataclass_arguments, dataclass_settings
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "cnmp_obstacle2d.json"
 DATASET = REPO / "datasets" / "cnmp_obstacle2d"
 CHECKPOINT = REPO / "outputs" / "main" / "train" / "checkpoints" / "last" / "pretrained_model"
 
-API_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "n_max_context", "m_max_targets", "context_in_targets",
-              "draws_per_sample", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr", "scheduler_decay_lr", "phase_frequencies",
-              "feedback_dims", "tracking_dims", "pd_dims", "pd_kp", "pd_kd", "phase_stop_threshold")
-"""The config's policy fields that the in-memory API takes over (model, sampling, optimizer; the execution
-names are the old top-level aliases; a config's ``execution`` section is passed as a whole)."""
+DATASET_RESOLVED = ("sm", "sm_names", "task_features", "use_task_params", "demo_duration_s", "dataset_fps")
+"""CNMPConfig fields that training fills in from the data when the config leaves them unset (the SM and γ
+features, the timing): a config's or a run's values for them are not settings it was given."""
+
+API_DECIDES = ("state_tracks_action", *DATASET_RESOLVED)
+"""CNMPConfig fields the in-memory API sets itself from the demos it is given (the tied SM layout and
+:data:`DATASET_RESOLVED`), so a config's values for them are not passed on."""
 
 
 def policy_batch(pre, obs: dict) -> dict:
@@ -66,16 +71,57 @@ def config(path: Path = CONFIG) -> dict:
 
 
 def api_model(cfg: dict | None = None):
-    """A ``CNMPModel`` with the training config's model, sampling and learning-rate settings."""
-    from lerobot_cnmp.api import CNMPModel
+    """A ``CNMPModel`` with the training config's CNMP settings (model, sampling, optimizer, execution): every
+    ``CNMPConfig`` field the config's ``policy`` section sets, except LeRobot's own (device, features, hub) and
+    :data:`API_DECIDES`. An image-conditioned config is an error: the API fits SM trajectories, not images."""
+    import dataclasses
 
-    from lerobot_cnmp.execution.config import ExecutionConfig
+    import draccus
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from lerobot_cnmp.api import CNMPModel
+    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 
     pol = (cfg or config())["policy"]
-    kw = {k: pol[k] for k in API_FIELDS if k in pol}
-    if "execution" in pol:  # the configs' execution settings (lerobot_cnmp.execution.executor.ExecutionConfig)
-        kw["execution"] = ExecutionConfig(**pol["execution"])
-    return CNMPModel(**kw)
+    if pol.get("use_images"):
+        raise ValueError("the in-memory API fits SM trajectories, not images: this config sets use_images "
+                         "(train it with lerobot-train)")
+    lerobot_own = {f.name for f in dataclasses.fields(PreTrainedConfig)}
+    given = {k: v for k, v in pol.items()
+             if k in CNMPConfig.__dataclass_fields__ and k not in lerobot_own and k not in API_DECIDES}
+    decoded = draccus.decode(CNMPConfig, given)  # the JSON's lists and sections as the dataclass's types
+    return CNMPModel(**{k: getattr(decoded, k) for k in given})
+
+
+def torch_threads(given: int | None, environ=os.environ) -> tuple[int, str]:
+    """(threads, where from) for both sides of a training comparison (the API and lerobot-train): ``given``
+    (``--threads``), else the environment's ``OMP_NUM_THREADS``, else one per CPU core. A value that is not an
+    integer >= 1 is an error."""
+    if given is not None:
+        n, source = given, "--threads"
+    elif environ.get("OMP_NUM_THREADS", "").strip():
+        text, source = environ["OMP_NUM_THREADS"].strip(), "OMP_NUM_THREADS"
+        try:
+            n = int(text)
+        except ValueError:
+            raise ValueError(f"OMP_NUM_THREADS must be an integer >= 1, got {text!r}") from None
+    else:
+        n, source = os.cpu_count() or 1, "CPU cores"
+    if n < 1:
+        raise ValueError(f"the number of torch threads ({source}) must be >= 1, got {n}")
+    return n, source
+
+
+def child_environment(threads: int, environ=os.environ) -> dict:
+    """A ``lerobot-train`` subprocess's environment: this one's, offline, with ``threads`` torch threads."""
+    return {**environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": str(threads)}
+
+
+def add_threads_argument(parser) -> None:
+    """``--threads``: the torch threads of both sides of a training comparison (:func:`torch_threads`)."""
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads of both sides, the API's and lerobot-train's (default: OMP_NUM_THREADS, "
+                             "else one per CPU core)")
 
 
 class MissingCheckpointError(FileNotFoundError):
@@ -106,54 +152,66 @@ def _matching_config(train_cfg: dict) -> Path | None:
     return None
 
 
-# the mixture decoder's settings a mixture bench takes on the command line (None: the config's) and reports
-MIXTURE_SETTINGS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+MIXTURE_FIELDS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef",
+                  "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
+"""The mixture decoder's settings that a mixture bench takes on the command line and reports: CNMPConfig's
+fields of these names (their types, defaults and allowed values come from CNMPConfig)."""
 
 
-def add_mixture_arguments(p, mixture_nll_choices=None, gate_commit_choices=None) -> None:
-    """The ``MIXTURE_SETTINGS`` as a mixture bench's options, each None (the config's, CNMPConfig's field of the
-    same name) unless given. ``*_choices``: their allowed values (lerobot_cnmp's constants, passed in so that a
-    bench can read its command line before that slow import)."""
-    p.add_argument("--mixture_nll", default=None, choices=mixture_nll_choices,
-                   help="the mixture's loss form (default: the config's)")
-    p.add_argument("--assignment_draws", type=int, default=None, help="(default: the config's)")
-    p.add_argument("--unconditional_nll_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--gate_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--batch_entropy_coef", type=float, default=None, help="(default: the config's)")
-    p.add_argument("--gate_commit", default=None, choices=gate_commit_choices,
-                   help="which contexts the gate-entropy term asks to commit (default: the config's)")
-    p.add_argument("--shared_decoder_layers", type=int, default=None,
-                   help="decoder hidden layers the experts share (default: the config's)")
+def add_mixture_arguments(p) -> None:
+    """The :data:`MIXTURE_FIELDS` as a mixture bench's options, each None (the config's) unless given."""
+    from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL, CNMPConfig
+
+    add_dataclass_arguments(p, CNMPConfig, only=MIXTURE_FIELDS,
+                            choices={"mixture_nll": MIXTURE_NLL, "gate_commit": GATE_COMMIT})
 
 
 def mixture_settings(args) -> dict:
-    """The ``MIXTURE_SETTINGS`` given on the command line (those not None), as CNMP config overrides."""
-    return {k: getattr(args, k) for k in MIXTURE_SETTINGS if getattr(args, k) is not None}
+    """The :data:`MIXTURE_FIELDS` given on the command line (those not None), as CNMP config overrides."""
+    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+
+    return dataclass_settings(args, CNMPConfig, only=MIXTURE_FIELDS)
 
 
-# CNMP settings that change what is trained; a run whose values differ from its committed config's (or, where
-# the config does not set them, from CNMPConfig's defaults) was given them on the command line
-_TRAINING_FIELDS = ("encoder_layers", "decoder_layers", "min_std", "phase_frequencies", "n_experts", "mixture_nll", "assignment_draws", "unconditional_nll_coef",
-                    "gate_entropy_coef", "batch_entropy_coef", "gate_commit", "shared_decoder_layers", "expert_selection", "nll_beta",
-                    "commanded_loss_weight", "feedback_draw_weight", "draws_per_sample", "n_max_context",
-                    "m_max_targets", "context_in_targets", "partial_obs_prob", "sensed_obs_prob", "optimizer_lr",
-                    "scheduler_decay_lr", "state_tracks_action")
+def mixture_report(config) -> dict:
+    """The mixture settings a fitted model's ``CNMPConfig`` trained with, for a bench's JSON."""
+    return {k: getattr(config, k) for k in MIXTURE_FIELDS}
 
 
 def _policy_overrides(train_cfg: dict, committed: dict) -> dict:
-    """``--policy.*`` values of a ``lerobot-train`` run that differ from the committed config it matches."""
+    """``--policy.<name>`` values of a ``lerobot-train`` run that differ from the committed config it matches
+    (dotted names inside a nested section). For a CNMP run: the settings that change what is trained, i.e.
+    every CNMPConfig field but LeRobot's own (device, features, hub), the execution section and
+    :data:`DATASET_RESOLVED`, compared with the committed config as CNMPConfig reads it (its defaults filled in)."""
     got, want = train_cfg.get("policy") or {}, committed.get("policy") or {}
     if got.get("type") != "cnmp":
         return {k: v for k, v in got.items() if k in want and v != want[k] and k not in ("device", "pretrained_path")}
     import dataclasses
 
+    import draccus
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from lerobot_cnmp.execution.config import ExecutionConfig
     from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 
-    defaults = {f.name: f.default for f in dataclasses.fields(CNMPConfig) if f.default is not dataclasses.MISSING}
-    def norm(v):  # a dataclass default tuple reads back from JSON as a list
-        return list(v) if isinstance(v, tuple) else v
+    skip = ({f.name for f in dataclasses.fields(PreTrainedConfig)}
+            | {f.name for f in dataclasses.fields(ExecutionConfig)} | {"execution", *DATASET_RESOLVED})
+    fields = [f.name for f in dataclasses.fields(CNMPConfig) if f.name not in skip]
+    resolved = draccus.encode(draccus.decode(CNMPConfig, {k: v for k, v in want.items() if k != "type"}))
+    out: dict = {}
 
-    return {k: got[k] for k in _TRAINING_FIELDS if k in got and norm(got[k]) != norm(want.get(k, defaults.get(k)))}
+    def differ(prefix: str, a, b) -> None:  # a: the run's value, b: the committed one
+        if isinstance(a, dict) and isinstance(b, dict):
+            for k in a:
+                if k in b:
+                    differ(f"{prefix}.{k}", a[k], b[k])
+        elif a != b:
+            out[prefix] = a
+
+    for k in fields:
+        if k in got:
+            differ(k, got[k], resolved.get(k))
+    return out
 
 
 def provenance(path: str | Path) -> dict:
@@ -230,18 +288,26 @@ def resolve_checkpoint(path: str | Path | None, *, train: bool, out_dir: Path, s
 def fit_checkpoint(out_dir: Path, steps: int | None = None, config_path: Path = CONFIG) -> Path:
     """Fit the config's CNMP with the in-memory API for the config's steps and batch size (the same model,
     sampling and schedule as ``lerobot-train``; whole demos instead of windows; γ when the dataset has it),
-    save it to ``out_dir`` with a ``bench_provenance.json`` recording the call."""
+    save it to ``out_dir`` with a ``bench_provenance.json`` recording the call. A config the API cannot fit
+    as written (images, the joint SM layout's own settings) raises :class:`MissingCheckpointError` naming it,
+    rather than fitting a different model."""
     from lerobot_cnmp.data.demos import load_demos
 
     cfg = config(config_path)
     steps = steps or cfg["steps"]
-    print(f"--train: fitting {Path(config_path).name}'s CNMP with the in-memory API ({steps} steps)", flush=True)
-    data = load_demos(REPO / cfg["dataset"]["root"])
-    model = api_model(cfg).fit(data["demos"], task_params=data["task_params"], steps=steps,
-                               batch_size=cfg["batch_size"], seed=cfg.get("seed", 0), progress=False)
-    path = model.save(out_dir)
     rel = Path(config_path)
     rel = rel.relative_to(REPO) if rel.is_absolute() and REPO in rel.parents else rel
+    print(f"--train: fitting {Path(config_path).name}'s CNMP with the in-memory API ({steps} steps)", flush=True)
+    data = load_demos(REPO / cfg["dataset"]["root"])
+    try:
+        model = api_model(cfg).fit(data["demos"], task_params=data["task_params"], steps=steps,
+                                   batch_size=cfg["batch_size"], seed=cfg.get("seed", 0), progress=False)
+    except ValueError as e:
+        raise MissingCheckpointError(
+            f"--train cannot fit {rel}'s CNMP with the in-memory API ({e}): train it with "
+            f"`lerobot-train --config_path={rel} --output_dir=...` and pass its "
+            "checkpoints/last/pretrained_model as --checkpoint") from e
+    path = model.save(out_dir)
     (Path(path) / PROVENANCE_FILE).write_text(json.dumps({
         "trained_by": "lerobot_cnmp.api.CNMPModel.fit (bench --train)",
         "step": steps,

@@ -53,19 +53,19 @@ statistics) under ``outputs/compare/datasets/``, and ``lerobot-eval`` gets
 
 Training budget rule (``BUDGET_RULE``): the same training wall time for every method, about 120 s of
 training loop per cell on this 2-core CPU (one thread), converted once into a fixed number of steps per
-method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps (2026-12-02, shared
+method from the throughput measured on cnmp_obstacle2d with 5 demos at 200 steps (shared
 machine: CNMP ~100 steps/s at batch 8 × 8 draws; ACT 7.4 steps/s and Diffusion 4.5 steps/s at batch 32,
 LeRobot's window loading dominating both), and kept for all tasks and demo counts: ``STEPS``, except where a
 task's entry sets its own (``cnmp_so101``'s CNMP is twice as wide, 4500 steps; ``cnmp_pickplace``'s CNMP
 keeps its committed config's 4000). CNMP's 9000 is
-its committed obstacle2d config (2 min 01 s in the README). ``--steps METHOD=N`` overrides both; the cell's JSON
+its committed obstacle2d config. ``--steps METHOD=N`` overrides both; the cell's JSON
 records the steps used, the rule, the process wall time and the training loop's own time (``train_loop_s``,
 LeRobot's progress bar). This budget is small for ACT and Diffusion (a few thousand samples per demo): the
 table says what each method reaches in ~2 min of CPU, not at its plateau.
 
 ```bash
-python bench/compare_policies.py --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
-python bench/compare_policies.py --report   # outputs/compare/report.md, docs/compare_policies.png and .md
+python -m bench.compare_policies --tasks cnmp_obstacle2d cnmp_metaworld_reach --methods cnmp act diffusion --demos 5 10
+python -m bench.compare_policies --report   # outputs/compare/report.md, docs/compare_policies.png and .md
 ```
 """
 
@@ -81,8 +81,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, provenance  # noqa: E402
+from bench.common import REPO, provenance
 
 BIN = Path(sys.executable).parent
 OUT = REPO / "outputs" / "compare"

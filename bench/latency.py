@@ -1,6 +1,6 @@
 """Latency of one control step (condition on the goals + the current state, predict the next SM target).
 
-    python bench/latency.py [--calls 2000]
+    python -m bench.latency [--calls 2000]
 
 Figures on CPU with 1 torch thread, same policy and observation stream, p50 over ``--calls`` calls:
 - ``control_step_p50_ms``: in-process, the network the policy executes (``CNMPPolicy.network()``: on

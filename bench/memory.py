@@ -1,6 +1,6 @@
 """Peak resident memory (RSS) of training and of inference, each in a fresh process.
 
-    python bench/memory.py [--checkpoint CKPT] [--train_steps 200]
+    python -m bench.memory [--checkpoint CKPT] [--train_steps 200]
 
 - ``peak_rss_train_mb``: ``lerobot-train`` with ``configs/cnmp_obstacle2d.json`` (the stock path);
 - ``peak_rss_train_api_mb``: the in-memory ``CNMPModel.fit`` on the same demos and settings;
@@ -22,9 +22,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-BENCH = Path(__file__).resolve().parent
-sys.path.insert(0, str(BENCH))
-from common import CONFIG, DATASET  # noqa: E402
+from bench.common import CONFIG, DATASET, REPO
 
 # Runs a module as __main__ (as its console script does) and reports the process's peak RSS at the end.
 RUN_MODULE = """
@@ -45,10 +43,9 @@ finally:
     print(f"PEAK_RSS_KB={resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}", file=sys.stderr, flush=True)
 """
 
+# run with the repository root as the working directory, where `bench` is importable
 API_TRAIN = """
-import sys
-sys.path.insert(0, {bench!r})
-from common import DATASET, api_model, config
+from bench.common import DATASET, api_model, config
 from lerobot_cnmp.data.demos import load_demos
 cfg = config()
 model = api_model(cfg)
@@ -84,21 +81,21 @@ def main() -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         ckpt = args.checkpoint
         if ckpt is not None:
-            from common import provenance
+            from bench.common import provenance
 
             res_ckpt = provenance(ckpt)
         else:
             res_ckpt = {"path": None, "step": 20, "trained_by": "this bench (RSS does not depend on the weights)",
                         "training_command": "CNMPModel.fit(<cnmp_obstacle2d demos>, steps=20) in a child process"}
             ckpt = str(Path(tmp) / "ckpt")
-            code = API_TRAIN.format(bench=str(BENCH), steps=20) + f"\nmodel.save({ckpt!r})\n"
-            peak_rss_mb(["-c", RUN_CODE, code], tmp)
+            code = API_TRAIN.format(steps=20) + f"\nmodel.save({ckpt!r})\n"
+            peak_rss_mb(["-c", RUN_CODE, code], str(REPO))
         res["peak_rss_train_mb"] = peak_rss_mb(
             ["-c", RUN_MODULE, "lerobot.scripts.lerobot_train", f"--config_path={CONFIG}", f"--dataset.root={DATASET}",
              f"--steps={args.train_steps}", f"--log_freq={args.train_steps}", "--save_checkpoint=false",
              "--policy.device=cpu", f"--output_dir={Path(tmp) / 'train'}"], tmp)
         res["peak_rss_train_api_mb"] = peak_rss_mb(
-            ["-c", RUN_CODE, API_TRAIN.format(bench=str(BENCH), steps=args.train_steps)], tmp)
+            ["-c", RUN_CODE, API_TRAIN.format(steps=args.train_steps)], str(REPO))
         res["peak_rss_inference_mb"] = peak_rss_mb(
             ["-c", RUN_MODULE, "lerobot.scripts.lerobot_eval", f"--policy.path={ckpt}", "--env.type=cnmp_obstacle2d",
              "--eval.n_episodes=2", "--eval.batch_size=2", "--policy.device=cpu", f"--output_dir={Path(tmp) / 'eval'}"],

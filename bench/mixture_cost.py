@@ -1,7 +1,7 @@
 """Training cost of the mixture decoder (issue 17): time to the single-decoder CNMP's validation NLL on the
 2D obstacle data.
 
-    python bench/mixture_cost.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
+    python -m bench.mixture_cost [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
                                  [--shared_decoder_layers S] [--gate_commit C] [--assignment_draws P] [--unconditional_nll_coef C]
                                  [--steps 3000] [--mixture_steps N] [--every 250] [--seed 0 | --seeds 0 1 2 3 4]
 
@@ -25,17 +25,12 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONFIG, DATASET, MIXTURE_SETTINGS, add_mixture_arguments, api_model, config, mixture_settings  # noqa: E402
-from time_to_error import PHASES, first_below, validation_set  # noqa: E402
-
-from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
+from bench.common import CONFIG, DATASET, add_mixture_arguments, api_model, config, mixture_report, mixture_settings
+from bench.time_to_error import PHASES, first_below, validation_set
 
 
 def validation_nll(model, val) -> float:
@@ -74,7 +69,7 @@ def run(cfg: dict, steps: int, every: int, val, seed: int, **overrides) -> tuple
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    add_mixture_arguments(p, MIXTURE_NLL, GATE_COMMIT)
+    add_mixture_arguments(p)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--mixture_steps", type=int, default=None,
                    help="the mixture's steps, its learning-rate decay spread over them (default: --steps)")
@@ -99,7 +94,7 @@ def main() -> dict:
         per_seed.append(compare(curves))
         if len(seeds) > 1:
             print(f"seed {seed}: " + verdict(per_seed[-1], args.experts), flush=True)
-    coefs.update({k: getattr(mix_cfg, k) for k in MIXTURE_SETTINGS})  # the values it trained with
+    coefs.update(mixture_report(mix_cfg))  # the values it trained with
     curves = {k: mean_curve([c["curves"][k] for c in per_seed]) for k in ("cnmp", "mixture")}
     res: dict = {"experts": args.experts, **coefs, "steps": args.steps,
                  "mixture_steps": args.mixture_steps or args.steps, "seeds": seeds}

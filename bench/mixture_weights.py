@@ -1,7 +1,7 @@
 """The weight switch as a change of mode: a mixture CNMP's gate on ``cnmp_weights`` before the grasp and
 after the lift (issue 17).
 
-    python bench/mixture_weights.py [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef C] [--batch_entropy_coef B]
+    python -m bench.mixture_weights [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef C] [--batch_entropy_coef B]
                                     [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S] [--assignment_draws P]
                                     [--steps N] [--save DIR]
 
@@ -20,17 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import MIXTURE_SETTINGS, REPO, add_mixture_arguments, api_model, config, mixture_settings  # noqa: E402
-from weights_report import start_and_lift  # noqa: E402
-
-from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL  # noqa: E402
+from bench.common import REPO, add_mixture_arguments, api_model, config, mixture_report, mixture_settings
+from bench.weights_report import start_and_lift
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 NEAR_UNIFORM = 0.1  # "near 1/4" before the grasp: every expert's π within 0.1 of 1/K on every mass
@@ -49,7 +44,7 @@ def unseen_masses() -> list[float]:
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--experts", type=int, default=4)
-    add_mixture_arguments(p, MIXTURE_NLL, GATE_COMMIT)
+    add_mixture_arguments(p)
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", default=None, help="write the fitted checkpoint here")
@@ -95,7 +90,7 @@ def main() -> dict:
     # which expert each true zone is given to after the lift
     zone_expert = {z: sorted({r["expert"] for r in rows if r["truth"] == z}) for z in range(4)}
     res = {
-        "mixture_experts": args.experts, **{k: getattr(model.config, k) for k in MIXTURE_SETTINGS},
+        "mixture_experts": args.experts, **mixture_report(model.config),
         "fit_s": round(fit_s, 1),
         "steps": args.steps or cfg["steps"], "episodes": len(rows),
         "gate_before_grasp_mean": [round(float(v), 3) for v in before.mean(0)],

@@ -1,6 +1,6 @@
 """Multimodal accuracy on the 2D obstacle task (paper Sec. IV-A, Fig. 4): CNMP vs ProMP vs DMP, same demos.
 
-    python bench/obstacle_accuracy.py [--checkpoint CKPT] [--random 100] [--start_goal 50]
+    python -m bench.obstacle_accuracy [--checkpoint CKPT] [--random 100] [--start_goal 50]
 
 Condition sets: the paper's three, ``--random`` random ones of the sim (via / early / end / via+end /
 via-y, both modes) and ``--start_goal`` start + goal pairs of random tasks (both modes). Each method is
@@ -20,13 +20,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CHECKPOINT, DATASET, REPO, add_checkpoint_args, checkpoint_from_args, provenance  # noqa: E402
+from bench.common import CHECKPOINT, DATASET, REPO, add_checkpoint_args, checkpoint_from_args, provenance
 
 
 def evaluate(predict, condition_sets, phases, demos):

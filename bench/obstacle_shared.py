@@ -1,6 +1,6 @@
 """Overlapping modes, executed: CNMP vs ProMP on the obstacle sim's ``shared`` family (paper Sec. IV-A setting).
 
-    python bench/obstacle_shared.py [--checkpoint CKPT | --train] [--episodes 50] [--seed 900000]
+    python -m bench.obstacle_shared [--checkpoint CKPT | --train] [--episodes 50] [--seed 900000]
 
 In ``--env.family=shared`` both avoidance modes start at (0, y0) and end at (1, y0) with the same y0: a
 start and a goal do not name the mode, and the average of the two modes runs through the obstacle. Both
@@ -27,14 +27,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,  # noqa: E402
-                    policy_batch, predict_sm, provenance)
+from bench.common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,
+                          policy_batch, predict_sm, provenance)
 
 CONFIG = REPO / "configs" / "cnmp_obstacle2d_shared.json"
 DATASET = REPO / "datasets" / "cnmp_obstacle2d_shared"

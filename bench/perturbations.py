@@ -1,6 +1,6 @@
 """Perturbation report on cnmp_obstacle2d: {perturbation} x {actuator} x {online feedback, open-loop replay}.
 
-    python bench/perturbations.py [--checkpoint CKPT | --train] [--episodes 50] [--seed 200000]
+    python -m bench.perturbations [--checkpoint CKPT | --train] [--episodes 50] [--seed 200000]
 
 Rows (each over ``--episodes`` episodes, reset seeds ``--seed`` + i, the same tasks for every row):
 - actuator ``servo`` (the stiff position servo the demos were recorded with), 300-step episodes:
@@ -25,14 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CHECKPOINT, REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance  # noqa: E402
+from bench.common import CHECKPOINT, REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance
 
 SERVO_ROWS = ("none", "push", "push_toward", "push_random", "hold")
 LAG_ROWS = ("none", "push_toward", "push_random")

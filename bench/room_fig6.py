@@ -1,6 +1,6 @@
 """Image-conditioned CNMP in unseen rooms, as in the paper's Fig. 6.
 
-    python bench/room_fig6.py [--checkpoint CKPT] [--rooms 3] [--seed 100000] [--out PNG]
+    python -m bench.room_fig6 [--checkpoint CKPT] [--rooms 3] [--seed 100000] [--out PNG]
 
 For ``--rooms`` rooms not in the dataset (reset seeds ``seed``, ``seed + 1``, ...; the dataset's rooms use
 seeds 0-999) and each condition type of ``cnmp_room`` (columns: start and end, via point and end, via
@@ -18,13 +18,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, policy_batch, predict_sm, provenance  # noqa: E402
+from bench.common import REPO, policy_batch, predict_sm, provenance
 
 CHECKPOINT = REPO / "outputs" / "room" / "train" / "checkpoints" / "last" / "pretrained_model"
 OUT = REPO / "docs" / "fig6_room.png"

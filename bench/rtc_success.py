@@ -1,7 +1,7 @@
 """Success with RTC (LeRobot's ``RTCInferenceEngine``, chunks in a background thread) vs sync execution
 (``lerobot-eval``'s ``rollout``, ``select_action`` every step) on our sims, same checkpoints, same reset seeds.
 
-    python bench/rtc_success.py [--sims obstacle2d,pickplace,weights,room] [--episodes 20] [--seed 100000]
+    python -m bench.rtc_success [--sims obstacle2d,pickplace,weights,room] [--episodes 20] [--seed 100000]
 
 Sync: LeRobot's ``rollout`` (what ``lerobot-eval`` runs). RTC: LeRobot's own ``RTCInferenceEngine`` (the
 engine ``lerobot-rollout --inference.type=rtc`` builds) drives the sim as it drives a robot: the control loop
@@ -21,15 +21,13 @@ import argparse
 import json
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, make_sim, provenance, resolve_checkpoint  # noqa: E402
+from bench.common import REPO, make_sim, provenance, resolve_checkpoint
 
 SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.sims.configs, default checkpoint, its config)
     "obstacle2d": ("CNMPObstacle2DEnv", "outputs/main", "configs/cnmp_obstacle2d.json"),

@@ -1,8 +1,8 @@
 """The whole benchmark suite in one run: accuracy (obstacle, sines, Table I), speed, time to error, memory.
 
-    python bench/run.py [--out outputs/bench]
+    python -m bench.run [--out outputs/bench]
 
-Runs each ``bench/*.py`` script in its own process, in sequence (one at a time, so timings do not
+Runs each bench (``python -m bench.<name>``) in its own process, in sequence (one at a time, so timings do not
 compete for the 2 cores), keeps each one's full output under ``--out`` and merges the JSON objects they
 print last. Prints a table of the headline figures (markdown, ready for the README) and, as its last line,
 one JSON object, whose ``checkpoints`` names, per script, the checkpoint its figures come from (path, step,
@@ -22,17 +22,16 @@ import time
 from datetime import date
 from pathlib import Path
 
-BENCH = Path(__file__).resolve().parent
-REPO = BENCH.parent
+REPO = Path(__file__).resolve().parents[1]
 
 SCRIPTS = [
-    ("latency.py", []),
-    ("sine_benchmark.py", []),
-    ("obstacle_accuracy.py", ["--train?"]),
-    ("train_speed.py", []),
-    ("time_to_error.py", []),
-    ("memory.py", []),
-    ("table1.py", ["--train?"]),
+    ("latency", []),
+    ("sine_benchmark", []),
+    ("obstacle_accuracy", ["--train?"]),
+    ("train_speed", []),
+    ("time_to_error", []),
+    ("memory", []),
+    ("table1", ["--train?"]),
 ]
 
 HEADLINE = [
@@ -75,11 +74,12 @@ REQUIRED = ("control_step_p50_ms", "trajectory_200_ms", "sine_error_cnmp", "sine
 def run_script(name: str, args: list[str], out: Path) -> tuple[dict, float]:
     t0 = time.perf_counter()
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.run([sys.executable, str(BENCH / name), *args], capture_output=True, text=True, cwd=REPO, env=env)
+    proc = subprocess.run([sys.executable, "-m", f"bench.{name}", *args], capture_output=True, text=True, cwd=REPO,
+                          env=env)
     seconds = time.perf_counter() - t0
-    (out / f"{Path(name).stem}.log").write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
+    (out / f"{name}.log").write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
     if proc.returncode != 0:
-        raise RuntimeError(f"bench/{name} failed (exit {proc.returncode}); see {out / (Path(name).stem + '.log')}:\n"
+        raise RuntimeError(f"python -m bench.{name} failed (exit {proc.returncode}); see {out / (name + '.log')}:\n"
                            f"{proc.stderr[-2000:]}")
     lines = [line for line in proc.stdout.splitlines() if line.strip()]
     return json.loads(lines[-1]), seconds
@@ -99,7 +99,7 @@ def main() -> dict:
     checkpoints: dict = {}
     start = time.perf_counter()
     for name, extra in SCRIPTS:
-        print(f"== bench/{name}", flush=True)
+        print(f"== python -m bench.{name}", flush=True)
         extra = [a.rstrip("?") for a in extra if not a.endswith("?") or args.train]
         figures, seconds[name] = run_script(name, extra, out)
         checkpoints[name] = figures.pop("checkpoint", None)

@@ -1,6 +1,6 @@
 """Multimodal sine benchmark, after the published protocol of CNEP (Yildirim & Ugur, arXiv 2402.08424).
 
-    python bench/sine_benchmark.py [--steps 4000] [--seed 0] [--experts 4] [--shared_decoder_layers S]
+    python -m bench.sine_benchmark [--steps 4000] [--seed 0] [--experts 4] [--shared_decoder_layers S]
                                    [--gate_commit C] [--gate_entropy_coef G] [--mixture_nll M] [--assignment_draws P]
 
 Data (as in the CNEP code, ``compare_cneps_on_4_sines_abl.py``): 4 modes x 32 demos of 200 steps on
@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import MIXTURE_SETTINGS, add_mixture_arguments, mixture_settings
+from bench.common import add_mixture_arguments, mixture_report, mixture_settings
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 200
@@ -92,7 +92,7 @@ def main() -> dict:
     p.add_argument("--batch_size", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--experts", type=int, default=4, help="decoders of the mixture CNMP (CNEP: 4); 0 skips it")
-    add_mixture_arguments(p, gate_commit_choices=("always", "where_decided", "redundant"))
+    add_mixture_arguments(p)
     p.add_argument("--plot", default=str(REPO / "outputs" / "sine_cnmp_vs_promp.png"))
     p.add_argument("--mixture_plot", default=str(REPO / "outputs" / "sine_mixture.png"))
     args = p.parse_args()
@@ -135,8 +135,7 @@ def main() -> dict:
     if mixture is not None:
         rows.insert(1, (f"mixture K={args.experts}", "mixture", [mixture.predict(x, c)[0][:, 0] for c in sets]))
         res.update(mixture_experts=args.experts, mixture_fit_s=round(mix_fit_s, 1),
-                   mixture_settings={k: getattr(mixture.config, k) for k in
-                                     MIXTURE_SETTINGS})
+                   mixture_settings=mixture_report(mixture.config))
     print(f"{'method':<16}{'error (mean ± std)':>22}{'published':>11}")
     for label, key, traj in rows:
         mean, std = score(traj, demos)

@@ -1,7 +1,7 @@
 """A plain behaviour-cloning reference on SO-101 pick and place: what an MLP on (τ, state, γ) reaches from a
 dataset, to tell a limit of the demonstrations from a limit of CNMP.
 
-    python bench/so101_bc_reference.py [--dataset datasets/cnmp_so101] [--seeds 10 11 12 13] [--episodes 100]
+    python -m bench.so101_bc_reference [--dataset datasets/cnmp_so101] [--seeds 10 11 12 13] [--episodes 100]
 
 For each seed it trains an MLP (3 x 256, ReLU) from the phase τ = frame / (T - 1), ``observation.state`` and the
 episode's first-frame ``observation.environment_state`` (γ) to ``action``, with the mean squared error on
@@ -19,14 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, read_frames  # noqa: E402
+from bench.common import REPO, read_frames
 
 DATASET = REPO / "datasets" / "cnmp_so101"
 MAX_STEPS = 300

@@ -1,6 +1,6 @@
 """Why SO-101 pick and place episodes fail: where the gripper closed, relative to the block, in each episode.
 
-    python bench/so101_failures.py [--checkpoint CKPT | --train] [--episodes 50] [--seed 100000]
+    python -m bench.so101_failures [--checkpoint CKPT | --train] [--episodes 50] [--seed 100000]
 
 Runs the CNMP on ``cnmp/SO101PickPlace-v0`` (the third-party plugin's env behind ``--env.type=cnmp_so101``;
 extra ``so101``) one episode at a time, reset seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them,
@@ -19,14 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,  # noqa: E402
-                    policy_batch, provenance, read_frames)
+from bench.common import (REPO, add_checkpoint_args, add_episode_args, load_checkpoint_policy, parse_episode_args,
+                          policy_batch, provenance, read_frames)
 
 CONFIG = REPO / "configs" / "cnmp_so101.json"
 DATASET = REPO / "datasets" / "cnmp_so101"

@@ -1,6 +1,6 @@
 """Table I of the paper on the pick-and-place sim: joint errors for new task parameters γ, and execution.
 
-    python bench/table1.py [--checkpoint CKPT] [--random 30]
+    python -m bench.table1 [--checkpoint CKPT] [--random 30]
 
 For the paper's three interpolation and three extrapolation γ = (object cm, obstacle cm), the CNMP is
 conditioned on γ and the start state (the home posture) and predicts the 200-step joint trajectory; each
@@ -18,13 +18,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance  # noqa: E402
+from bench.common import REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance
 
 CONFIG = REPO / "configs" / "cnmp_pickplace.json"
 CHECKPOINT = REPO / "outputs" / "pickplace" / "train" / "checkpoints" / "last" / "pretrained_model"

@@ -1,6 +1,6 @@
 """Training time to a fixed validation error, in-memory API vs ``lerobot-train``, on the 2D obstacle task.
 
-    python bench/time_to_error.py [--steps 3000] [--every 250] [--threshold 0.03]
+    python -m bench.time_to_error [--steps 3000] [--every 250] [--threshold 0.03]
 
 Both paths train the model and sampling of ``configs/cnmp_obstacle2d.json`` (batch size, draws, n_max,
 m_max, learning rate and its cosine decay) for ``--steps`` steps, the decay spread over that run. Every
@@ -11,6 +11,7 @@ first drops to ``--threshold``, for each path.
 - API: ``CNMPModel.fit`` with a callback; scoring time is excluded.
 - lerobot-train: the CLI saving a checkpoint every ``--every`` steps; a checkpoint's time is its save
   time minus the time the training loop started (from LeRobot's log), so checkpoint writing is included.
+Both run with the same number of torch threads (``--threads``, else ``OMP_NUM_THREADS``, else one per CPU core).
 Last line: one JSON object.
 """
 
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import subprocess
 import sys
@@ -29,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONFIG, DATASET, api_model  # noqa: E402
+from bench.common import CONFIG, DATASET, add_threads_argument, api_model, child_environment, torch_threads
 
 PHASES = np.linspace(0.0, 1.0, 200)
 
@@ -79,7 +78,7 @@ def run_api(cfg: dict, steps: int, every: int, val) -> list[tuple[int, float, fl
     return points
 
 
-def run_lerobot(cfg: dict, steps: int, every: int, val) -> list[tuple[int, float, float]]:
+def run_lerobot(cfg: dict, steps: int, every: int, val, threads: int) -> list[tuple[int, float, float]]:
     from lerobot_cnmp.api import CNMPModel
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -89,7 +88,7 @@ def run_lerobot(cfg: dict, steps: int, every: int, val) -> list[tuple[int, float
             f"--dataset.root={DATASET}", f"--steps={steps}", f"--save_freq={every}", f"--log_freq={every}",
             "--policy.device=cpu", f"--output_dir={out_dir}",
         ]
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, env=child_environment(threads))
         log = proc.stdout + proc.stderr
         if proc.returncode != 0:
             raise RuntimeError(f"lerobot-train failed:\n{log[-3000:]}")
@@ -112,15 +111,22 @@ def main() -> dict:
     p.add_argument("--threshold", type=float, default=0.03)
     p.add_argument("--validation", type=int, default=40, help="validation tasks")
     p.add_argument("--seed", type=int, default=500000)
+    add_threads_argument(p)
     args = p.parse_args()
+    try:
+        threads, threads_from = torch_threads(args.threads)
+    except ValueError as e:
+        p.error(str(e))
     import torch
 
-    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    torch.set_num_threads(threads)
     cfg = json.loads(CONFIG.read_text())
     val = validation_set(args.validation, args.seed)
     curves = {"api": run_api(cfg, args.steps, args.every, val),
-              "lerobot": run_lerobot(cfg, args.steps, args.every, val)}
-    res: dict = {"threshold": args.threshold, "steps": args.steps, "batch_size": cfg["batch_size"]}
+              "lerobot": run_lerobot(cfg, args.steps, args.every, val, threads)}
+    res: dict = {"threshold": args.threshold, "steps": args.steps, "batch_size": cfg["batch_size"],
+                 "threads": threads, "threads_from": threads_from}
+    print(f"both paths: {threads} torch thread(s) (from {threads_from})")
     print(f"validation error (mean distance to the true path) every {args.every} steps")
     print(f"{'steps':>6}" + "".join(f"{k + ' s':>12}{k + ' err':>12}" for k in curves))
     for row in zip(*curves.values(), strict=False):

@@ -1,7 +1,7 @@
 """Training throughput: the stock ``lerobot-train`` path against the in-memory API, same model, batch and
 sampling, on the config's dataset and on a copy of it resampled to long episodes (1000 frames by default).
 
-    python bench/train_speed.py [--config configs/cnmp_obstacle2d.json] [--batch_size 8] [--steps 400]
+    python -m bench.train_speed [--config configs/cnmp_obstacle2d.json] [--batch_size 8] [--steps 400]
                                 [--long_frames 1000] [--long_episodes 16]
 
 - API: ``CNMPModel.fit`` on the dataset's demos held in memory (no loader), with the config's model,
@@ -11,6 +11,8 @@ sampling, on the config's dataset and on a copy of it resampled to long episodes
 Both draw each sample's observations and queries from its whole episode through the same
 ``EpisodeBank`` and ``CNMPPolicy.forward``; the long-episode run shows that the per-sample cost does not
 grow with the episode length (``--long_frames 0`` skips it).
+Both sides run with the same number of torch threads: ``--threads``, else ``OMP_NUM_THREADS``, else one per
+CPU core (the lerobot-train subprocess gets it as its ``OMP_NUM_THREADS``); the JSON's ``threads`` says which.
 - ``train_step_ms_batch1_api``: the API at batch 1 with one draw per step (the paper's training setting).
 With an image config (``--config configs/cnmp_room.json``, ``use_images``) only lerobot-train is measured: the
 in-memory API takes SM trajectories, not images. Last line: one JSON object with ``train_steps_per_s_api``
@@ -31,8 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONFIG, REPO, api_model  # noqa: E402
+from bench.common import CONFIG, REPO, add_threads_argument, api_model, child_environment, torch_threads
 
 
 def dataset_root(cfg: dict) -> Path:
@@ -49,7 +50,8 @@ def median_rate(model, demos, batch_size: int, steps: int, task_params=None) -> 
     return float(np.median(rates))
 
 
-def lerobot_steps_per_s(config: Path, dataset: Path, batch_size: int, steps: int, extra: list[str]) -> dict:
+def lerobot_steps_per_s(config: Path, dataset: Path, batch_size: int, steps: int, extra: list[str],
+                        threads: int) -> dict:
     log_freq = max(steps // 8, 10)
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
@@ -59,8 +61,7 @@ def lerobot_steps_per_s(config: Path, dataset: Path, batch_size: int, steps: int
             "--policy.device=cpu", f"--output_dir={Path(tmp) / 'out'}", *extra,
         ]
         t0 = time.perf_counter()
-        out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp,
-                             env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, env=child_environment(threads))
         wall = time.perf_counter() - t0
     if out.returncode != 0:
         raise RuntimeError(f"lerobot-train failed:\n{out.stderr[-3000:]}")
@@ -98,41 +99,49 @@ def resampled_dataset(src: Path, dst: Path, frames: int, episodes: int) -> Path:
     return dst
 
 
-def measure(config: Path, cfg: dict, dataset: Path, batch_size: int, steps: int, extra: list[str]) -> dict:
+def measure(config: Path, cfg: dict, dataset: Path, batch_size: int, steps: int, extra: list[str],
+            threads: int) -> dict:
     from lerobot_cnmp.data.demos import load_demos
 
     demos = load_demos(dataset)
     model = api_model(cfg)
     api = median_rate(model, demos["demos"], batch_size, steps, demos["task_params"])
-    stock = lerobot_steps_per_s(config, dataset, batch_size, steps, extra)
+    stock = lerobot_steps_per_s(config, dataset, batch_size, steps, extra, threads)
     return {"api": api, **stock, "frames_per_episode": int(np.median([len(d) for d in demos["demos"]]))}
 
 
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--config", type=Path, default=CONFIG, help="a lerobot-train config of configs/")
-    pre, _ = p.parse_known_args()
-    config = pre.config.resolve()
-    cfg = json.loads(config.read_text())
-    if not (dataset_root(cfg) / "meta" / "info.json").is_file():
-        p.error(f"no dataset at {dataset_root(cfg)}: record it with lerobot-cnmp-record first")
-    p.add_argument("--batch_size", type=int, default=cfg["batch_size"])
+    p.add_argument("--batch_size", type=int, default=None, help="(default: the config's)")
     p.add_argument("--steps", type=int, default=400)
     p.add_argument("--long_frames", type=int, default=1000, help="frames per episode of the long-episode run (0: skip)")
     p.add_argument("--long_episodes", type=int, default=16)
     p.add_argument("--lerobot_args", default="", help="extra lerobot-train overrides in one string, e.g. \"--num_workers=1\"")
+    add_threads_argument(p)
     args = p.parse_args()
+    config = args.config.resolve()
+    cfg = json.loads(config.read_text())
+    if not (dataset_root(cfg) / "meta" / "info.json").is_file():
+        p.error(f"no dataset at {dataset_root(cfg)}: record it with lerobot-cnmp-record first")
+    if args.batch_size is None:
+        args.batch_size = cfg["batch_size"]
+    try:
+        threads, threads_from = torch_threads(args.threads)
+    except ValueError as e:
+        p.error(str(e))
     import torch
 
-    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    torch.set_num_threads(threads)
     images = bool(cfg["policy"].get("use_images"))
     extra = args.lerobot_args.split()
     runs: dict[str, dict] = {}
     step_ms_batch1 = None
     if images:  # the in-memory API takes SM trajectories, not images
-        runs["dataset"] = {"api": None, **lerobot_steps_per_s(config, dataset_root(cfg), args.batch_size, args.steps, extra)}
+        runs["dataset"] = {"api": None, **lerobot_steps_per_s(config, dataset_root(cfg), args.batch_size, args.steps, extra,
+                                                             threads)}
     else:
-        runs["dataset"] = measure(config, cfg, dataset_root(cfg), args.batch_size, args.steps, extra)
+        runs["dataset"] = measure(config, cfg, dataset_root(cfg), args.batch_size, args.steps, extra, threads)
         # The paper's setting (one demo, one draw per step), to set beside the original code's ~1.5 ms/step.
         batch1 = {**cfg, "policy": {**cfg["policy"], "draws_per_sample": 1}}
         from lerobot_cnmp.data.demos import load_demos
@@ -141,7 +150,7 @@ def main() -> dict:
         if args.long_frames:
             with tempfile.TemporaryDirectory() as tmp:
                 long_root = resampled_dataset(dataset_root(cfg), Path(tmp) / "long", args.long_frames, args.long_episodes)
-                runs["long"] = measure(config, cfg, long_root, args.batch_size, args.steps, extra)
+                runs["long"] = measure(config, cfg, long_root, args.batch_size, args.steps, extra, threads)
     main_run = runs["dataset"]
     ratio = lambda r: None if r["api"] is None else round(r["api"] / r["steps_per_s"], 2)  # noqa: E731
     res = {
@@ -157,12 +166,15 @@ def main() -> dict:
         "num_workers": cfg.get("num_workers"),
         "lerobot_overrides": args.lerobot_args,
         "cpus": os.cpu_count(),
+        "threads": threads,
+        "threads_from": threads_from,
     }
     if "long" in runs:
         r = runs["long"]
         res.update({"long_frames_per_episode": r["frames_per_episode"], "long_steps_per_s_api": round(r["api"], 2),
                     "long_steps_per_s_lerobot": round(r["steps_per_s"], 2), "long_api_over_lerobot": ratio(r),
                     "long_lerobot_data_wait_s": round(r["data_wait_s"], 4)})
+    print(f"both sides: {threads} torch thread(s) (from {threads_from})")
     print(f"{'dataset':<10}{'frames/ep':>10}{'path':>16}{'batch':>6}{'steps/s':>10}")
     for name, r in runs.items():
         frames = r.get("frames_per_episode", "")

@@ -1,6 +1,6 @@
 """Sensorimotor classification in closed loop with a mid-motion weight switch, as in the paper's Fig. 11.
 
-    python bench/weights_fig11.py [--checkpoint CKPT] [--shape 0|1] [--mass KG] [--seed N] [--out PNG]
+    python -m bench.weights_fig11 [--checkpoint CKPT] [--shape 0|1] [--mass KG] [--seed N] [--out PNG]
 
 Runs the trained CNMP in ``cnmp_weights`` with ``perturbation=weight_switch`` (a light container becomes
 heavy during transport) for one episode, with the config's execution settings (online feedback, PD,
@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, predict_sm, provenance  # noqa: E402
+from bench.common import REPO, add_checkpoint_args, checkpoint_from_args, policy_batch, predict_sm, provenance
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"

@@ -1,6 +1,6 @@
 """Sensorimotor classification offline (paper Sec. IV-D): does the CNMP infer the target zone from the SM?
 
-    python bench/weights_report.py [--checkpoint CKPT]
+    python -m bench.weights_report [--checkpoint CKPT]
 
 For each container shape x unseen (test) mass, the scripted expert runs one episode in ``cnmp_weights``;
 the CNMP is conditioned on its start state only (before the grasp: all four zones are possible) and then
@@ -15,13 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, provenance  # noqa: E402
+from bench.common import REPO, add_checkpoint_args, checkpoint_from_args, provenance
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"

@@ -1,6 +1,6 @@
 """The weight switch in closed loop, counted: open loop vs online feedback on ``cnmp_weights`` over seed sets.
 
-    python bench/weights_switch.py [--checkpoint CKPT | --train] [--episodes 20] [--seeds 1000 100000 ...]
+    python -m bench.weights_switch [--checkpoint CKPT | --train] [--episodes 20] [--seeds 1000 100000 ...]
 
 Each seed set is ``--episodes`` episodes of ``--env.type=cnmp_weights --env.perturbation=weight_switch`` run
 by LeRobot's ``rollout`` as ``lerobot-eval`` runs them (batches of ``--batch`` envs, reset seeds ``seed`` + i;
@@ -18,13 +18,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance  # noqa: E402
+from bench.common import REPO, add_checkpoint_args, checkpoint_from_args, make_sim, provenance
 
 CONFIG = REPO / "configs" / "cnmp_weights.json"
 CHECKPOINT = REPO / "outputs" / "weights" / "train" / "checkpoints" / "last" / "pretrained_model"

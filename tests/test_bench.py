@@ -1,14 +1,11 @@
 """The benchmark protocols' own logic (data, test draws, scores); the figures themselves live in bench/."""
 
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-import sine_benchmark as sine  # noqa: E402
-from time_to_error import first_below  # noqa: E402
+import bench.sine_benchmark as sine
+from bench.time_to_error import first_below
 
 
 def test_sine_data_follows_the_protocol():
@@ -49,7 +46,7 @@ def test_first_below():
 
 def test_missing_checkpoint_is_a_clear_error(tmp_path):
     import pytest
-    from common import MissingCheckpointError, resolve_checkpoint
+    from bench.common import MissingCheckpointError, resolve_checkpoint
 
     with pytest.raises(MissingCheckpointError, match="--train"):
         resolve_checkpoint(tmp_path / "nowhere", train=False, out_dir=tmp_path / "fit")
@@ -64,7 +61,7 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path):
 def test_provenance_of_a_lerobot_train_checkpoint(tmp_path):
     import json
 
-    from common import REPO, provenance
+    from bench.common import REPO, provenance
 
     cfg = json.loads((REPO / "configs" / "cnmp_obstacle2d.json").read_text())
     ckpt = tmp_path / "checkpoints" / "009000" / "pretrained_model"
@@ -90,7 +87,7 @@ def test_provenance_of_a_lerobot_train_checkpoint(tmp_path):
 
 
 def test_mode_of_reads_the_side_of_the_obstacle_where_the_path_crosses_it():
-    from obstacle_shared import mode_of
+    from bench.obstacle_shared import mode_of
 
     x = np.linspace(0.0, 1.0, 101)
     bump = 0.3 * np.sin(np.pi * x)
@@ -116,7 +113,7 @@ def test_sine_benchmark_runs_end_to_end_with_the_mixture(tmp_path, monkeypatch):
 def test_mixture_cost_compares_mean_curves_over_seeds():
     """--seeds: the curves are averaged point by point (time and NLL), the single decoder's final mean NLL is
     the target, and a mixture that never gets there is 'not reached' (no ratio), not a number."""
-    import mixture_cost as mc
+    import bench.mixture_cost as mc
 
     cnmp = [[(1, 1.0, -1.0), (2, 2.0, -2.0)], [(1, 3.0, -3.0), (2, 4.0, -4.0)]]
     mean = mc.mean_curve(cnmp)
@@ -138,7 +135,7 @@ def test_mixture_cost_runs_end_to_end_over_two_seeds(monkeypatch, capsys):
     """The bench's whole path (both models per seed, mean curves, per-seed verdicts, JSON) on a few steps."""
     import json
 
-    import mixture_cost as mc
+    import bench.mixture_cost as mc
 
     monkeypatch.setattr(sys, "argv", ["mixture_cost.py", "--experts", "2", "--steps", "4", "--every", "2",
                                       "--validation", "2", "--seeds", "0", "1", "--assignment_draws", "1"])
@@ -149,15 +146,126 @@ def test_mixture_cost_runs_end_to_end_over_two_seeds(monkeypatch, capsys):
 
 
 def test_mixture_arguments_cover_every_mixture_setting():
-    """Every bench that takes the mixture's settings gets each of MIXTURE_SETTINGS as an option (None: the
+    """Every bench that takes the mixture's settings gets each of MIXTURE_FIELDS as an option (None: the
     config's), and only those given reach the model."""
     import argparse
 
-    from common import MIXTURE_SETTINGS, add_mixture_arguments, mixture_settings
+    from bench.common import MIXTURE_FIELDS, add_mixture_arguments, mixture_settings
 
     p = argparse.ArgumentParser()
     add_mixture_arguments(p)
     args = p.parse_args([])
-    assert {k for k, v in vars(args).items() if v is None} == set(MIXTURE_SETTINGS) and mixture_settings(args) == {}
+    assert {k for k, v in vars(args).items() if v is None} == set(MIXTURE_FIELDS) and mixture_settings(args) == {}
     args = p.parse_args(["--assignment_draws", "1", "--unconditional_nll_coef", "0.25"])
     assert mixture_settings(args) == {"assignment_draws": 1, "unconditional_nll_coef": 0.25}
+
+
+def test_settings_reader_derives_options_from_a_dataclass():
+    """add_dataclass_arguments: one option per field, its type from the annotation (int, float, bool, str,
+    ``X | None``, ``tuple[X, ...]``, ``Literal``), default None; dataclass_settings returns those given."""
+    import argparse
+    import dataclasses
+    from typing import Literal
+
+    import pytest
+
+    from bench.settings import add_dataclass_arguments, dataclass_settings
+
+    @dataclasses.dataclass
+    class Section:
+        flag: bool = False
+
+    @dataclasses.dataclass
+    class Demo:
+        steps: int = 3
+        rate: float | None = None
+        name: str = "a"
+        on: bool = True
+        layers: tuple[int, ...] = (8, 8)
+        form: Literal["x", "y"] = "x"
+        section: Section = dataclasses.field(default_factory=Section)
+
+    p = argparse.ArgumentParser()
+    add_dataclass_arguments(p, Demo, choices={"name": ("a", "b")})
+    assert dataclass_settings(p.parse_args([]), Demo) == {}
+    args = p.parse_args(["--steps", "5", "--rate", "0.5", "--on", "false", "--layers", "4", "2", "--form", "y"])
+    assert dataclass_settings(args, Demo) == {"steps": 5, "rate": 0.5, "on": False, "layers": (4, 2), "form": "y"}
+    assert "section" not in vars(args)  # a nested section has no flat option
+    for bad in (["--name", "c"], ["--form", "z"], ["--steps", "x"], ["--on", "maybe"]):
+        with pytest.raises(SystemExit):
+            p.parse_args(bad)
+    only = argparse.ArgumentParser()
+    add_dataclass_arguments(only, Demo, only=("rate",))
+    assert set(vars(only.parse_args([]))) == {"rate"}
+    with pytest.raises(ValueError, match="no field"):
+        add_dataclass_arguments(argparse.ArgumentParser(), Demo, only=("nope",))
+    with pytest.raises(TypeError, match="no command-line form"):
+        add_dataclass_arguments(argparse.ArgumentParser(), Demo, only=("section",))
+
+
+def test_mixture_options_take_the_configs_types_and_choices():
+    import argparse
+
+    import pytest
+
+    from bench.common import add_mixture_arguments, mixture_settings
+    from lerobot_cnmp.policy.configuration_cnmp import MIXTURE_NLL
+
+    p = argparse.ArgumentParser()
+    add_mixture_arguments(p)
+    assert mixture_settings(p.parse_args(["--mixture_nll", MIXTURE_NLL[-1]])) == {"mixture_nll": MIXTURE_NLL[-1]}
+    with pytest.raises(SystemExit):
+        p.parse_args(["--mixture_nll", "nonsense"])
+    with pytest.raises(SystemExit):
+        p.parse_args(["--assignment_draws", "1.5"])
+
+
+def test_api_model_takes_every_model_setting_of_the_config():
+    """api_model passes the config's CNMPConfig fields (not LeRobot's own, not the ones the API sets from the
+    demos) and refuses an image config instead of dropping use_images."""
+    import pytest
+
+    from bench.common import api_model, config
+
+    cfg = config()
+    extra = {"nll_beta": 0.5, "encoder_layers": [64, 64], "device": "cpu", "state_tracks_action": True,
+             "execution": {"pd_kp": 0.5}}
+    model = api_model({**cfg, "policy": {**cfg["policy"], **extra}})
+    got = model.overrides
+    assert got["nll_beta"] == 0.5 and tuple(got["encoder_layers"]) == (64, 64) and got["execution"].pd_kp == 0.5
+    assert got["n_max_context"] == cfg["policy"]["n_max_context"]
+    assert not {"device", "state_tracks_action", "type", "push_to_hub"} & set(got)
+    with pytest.raises(ValueError, match="not images"):
+        api_model({**cfg, "policy": {**cfg["policy"], "use_images": True}})
+
+
+def test_training_comparisons_run_both_sides_with_the_same_threads():
+    """train_speed / time_to_error: --threads, else OMP_NUM_THREADS, else the cores, for the API (this process)
+    and for lerobot-train (its OMP_NUM_THREADS); a bad value is an error, not a silent default."""
+    import os
+
+    import pytest
+
+    from bench.common import child_environment, torch_threads
+
+    assert torch_threads(None, {"OMP_NUM_THREADS": "3"}) == (3, "OMP_NUM_THREADS")
+    assert torch_threads(2, {"OMP_NUM_THREADS": "5"}) == (2, "--threads")
+    assert torch_threads(None, {}) == (os.cpu_count() or 1, "CPU cores")
+    for bad, env in ((None, {"OMP_NUM_THREADS": "two"}), (0, {}), (None, {"OMP_NUM_THREADS": "0"})):
+        with pytest.raises(ValueError, match="threads|OMP_NUM_THREADS"):
+            torch_threads(bad, env)
+    env = child_environment(2, {"OMP_NUM_THREADS": "5", "PATH": "/bin"})
+    assert env["OMP_NUM_THREADS"] == "2" and env["PATH"] == "/bin" and env["HF_HUB_OFFLINE"] == "1"
+
+
+def test_no_bench_edits_sys_path():
+    """Every bench is a module of the ``bench`` package run as ``python -m bench.<name>``: none inserts a
+    folder into sys.path (nor builds child code that does), each one's usage line says how to run it."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "bench"
+    for path in sorted(root.glob("*.py")):
+        text = path.read_text()
+        assert "sys.path" not in text, path.name
+        if path.stem not in ("__init__", "common", "settings"):
+            assert f"python -m bench.{path.stem}" in text, path.name

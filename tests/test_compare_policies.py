@@ -3,13 +3,11 @@ failing cell is recorded as an error and ends the run non-zero, and the report (
 files."""
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import compare_policies as cp  # noqa: E402
+import bench.compare_policies as cp
 
 
 def _ok(task, method, n, pc):

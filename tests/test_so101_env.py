@@ -217,8 +217,7 @@ def test_bc_reference_bench_reads_the_dataset_and_runs(tmp_path, monkeypatch, ca
     import json
     import sys
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    import so101_bc_reference as bc
+    import bench.so101_bc_reference as bc
 
     x, y, length = bc.load_frames(DATASET)
     df = _episodes()
