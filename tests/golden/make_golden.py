@@ -43,7 +43,17 @@ def observations(ds: LeRobotDataset, keys: list[str]) -> list[dict[str, torch.Te
 
 
 def train_steps(policy, n_episodes: int) -> list[float]:
-    """STEPS Adam steps on batches of 4 episodes with a fixed generator; the losses."""
+    """STEPS Adam steps on batches of 4 episodes with a fixed generator, on one torch thread (a reduction's
+    float order depends on the thread count); the losses."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _train_steps(policy, n_episodes)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train_steps(policy, n_episodes: int) -> list[float]:
     opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
     g = torch.Generator().manual_seed(0)
     policy.train()
