@@ -246,12 +246,12 @@ class MixtureCNMP(CNMP):
     @torch.no_grad()
     def revive_starving(self, log_joint: Tensor, momentum: float = 0.99) -> Tensor:
         """The assignment scores log π⁰_k Π_q N⁰_bk [B, K] with k-means' remedy for an empty cluster: in training,
-        each expert's share of the episodes is tracked (a running mean of the hard assignments, ``momentum``
-        per call: one per ``training_loss``); an expert whose share falls below 1 / (4K) is given, in this batch,
-        the episode it fits least badly relative to that episode's expert (the smallest gap
-        max_l s_bl - s_bk). Trained on it, it takes that mode over or drops it. Without this an expert that
-        loses every episode early (the hard posterior of a whole episode leaves it no gradient) stays idle
-        while another covers two modes."""
+        each expert's share of the episodes is tracked (a running mean of the hard assignments, ``momentum`` per
+        call: one per ``training_loss``, two per step with the policy's feedback draws); an expert whose share
+        falls below 1 / (4K) is given, in this batch, the episode it fits least badly relative to that episode's
+        expert (the smallest gap max_l s_bl - s_bk). Trained on it, it takes that mode over or drops it. Without
+        this an expert that loses every episode early (the hard posterior of a whole episode leaves it no
+        gradient) stays idle while another covers two modes."""
         if not self.training:
             return log_joint
         k = self.n_experts
