@@ -23,7 +23,9 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot_cnmp.data.bank import EpisodeBank
 from lerobot_cnmp.execution.conditions import Condition, layout_size
 from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS, CNMPConfig
-from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy, Context
+from lerobot_cnmp.model.cnmp import Context
+from lerobot_cnmp.model.mixture import mixture_of, n_experts
+from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
 
 __all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos", "sm_stats"]
 
@@ -223,10 +225,10 @@ class CNMPModel:
         if expert is None:
             mean, std = self.policy.model(ctx, q)
         else:
-            k = self.policy.model.n_experts
+            k = n_experts(self.policy.model)
             if int(expert) != expert or not 0 <= expert < k:
                 raise ValueError(f"expert must be an integer in 0..{k - 1} (this model has {k}), got {expert}")
-            means, stds, _ = self.policy.model.mixture(ctx, q)
+            means, stds, _ = mixture_of(self.policy.model, ctx, q)
             mean, std = means[:, int(expert)], stds[:, int(expert)]
         mean = mean[0].cpu().numpy() * self.sm_std + self.sm_mean
         return mean, std[0].cpu().numpy() * self.sm_std
@@ -237,7 +239,7 @@ class CNMPModel:
         """Every expert's prediction and probability given the conditions: μ_k and σ_k ``[K, M, D]`` (SM units)
         and the gate's π ``[K]`` (sums to 1). K = 1 (a plain CNMP): one expert of probability 1."""
         q, ctx = self._query(phases), self.context(conditions, task_params)
-        means, stds, probs = self.policy.model.mixture(ctx, q)
+        means, stds, probs = mixture_of(self.policy.model, ctx, q)
         return (means[0].cpu().numpy() * self.sm_std + self.sm_mean, stds[0].cpu().numpy() * self.sm_std,
                 probs[0].cpu().numpy())
 

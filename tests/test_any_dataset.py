@@ -501,7 +501,7 @@ def test_feedback_draws_need_sensed_dims_and_a_weight_in_0_1(meta):
 
 
 def test_beta_nll_weights_each_dim_by_the_detached_variance():
-    from lerobot_cnmp.policy.modeling_cnmp import CNMP, Targets
+    from lerobot_cnmp.model.cnmp import CNMP, Targets
 
     g = torch.Generator().manual_seed(0)
     mean = torch.randn(2, 5, 3, generator=g, requires_grad=True)
@@ -522,7 +522,7 @@ def test_beta_nll_weights_each_dim_by_the_detached_variance():
 
 
 def test_commanded_loss_weight_scales_the_action_dims_terms(meta):
-    from lerobot_cnmp.policy.modeling_cnmp import CNMP, Targets
+    from lerobot_cnmp.model.cnmp import CNMP, Targets
 
     with pytest.raises(ValueError, match="commanded_loss_weight must be > 0"):
         CNMPConfig(commanded_loss_weight=0.0)

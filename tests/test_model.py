@@ -8,7 +8,10 @@ import torch
 
 from lerobot_cnmp.api import CNMPModel, Condition, pad_demos
 from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
-from lerobot_cnmp.policy.modeling_cnmp import CNMP, Context, Episodes, NumpyCNMP, Targets, sample_context_and_targets
+from lerobot_cnmp.model.cnmp import CNMP, Context, Episodes, Targets
+from lerobot_cnmp.model.mixture import MixtureCNMP, mixture_of, n_experts
+from lerobot_cnmp.model.numpy_cnmp import NumpyCNMP
+from lerobot_cnmp.model.sampling import sample_context_and_targets
 
 
 def toy_demos(n=8, t=50, seed=0):
@@ -344,7 +347,7 @@ def test_one_expert_is_todays_model_bit_for_bit():
     computed by the code before the mixture existed (commit 53efd9f), same seed, same inputs."""
     torch.manual_seed(0)
     m = CNMP(sm_dim=2, task_dim=1, encoder_layers=(8, 8), decoder_layers=(8, 8))
-    assert m.n_experts == 1
+    assert n_experts(m) == 1 and not isinstance(m, MixtureCNMP)
     assert sorted(m.state_dict()) == sorted(f"{n}.{i}.{p}" for n in ("encoder", "decoder") for i in (0, 2, 4)[: 3 if n == "decoder" else 2]
                                             for p in ("weight", "bias"))
     gen = torch.Generator().manual_seed(3)
@@ -362,14 +365,14 @@ def test_one_expert_is_todays_model_bit_for_bit():
     loss, info = m.training_loss(ctx, targets)
     assert loss.item() == pytest.approx(2.223935604095459, abs=1e-6) and set(info) == {"nll", "mae", "std"}
     # the mixture view of a single decoder: one expert of probability 1, the same (μ, σ)
-    means, stds, probs = m.mixture(ctx, q)
+    means, stds, probs = mixture_of(m, ctx, q)
     assert torch.equal(means[:, 0], mean) and torch.equal(stds[:, 0], std) and torch.equal(probs, torch.ones(2, 1))
 
 
 @pytest.fixture(scope="module")
 def mixture_net():
     torch.manual_seed(0)
-    return CNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3).eval()
+    return MixtureCNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3).eval()
 
 
 def test_mixture_shapes_gate_sums_to_one_and_decode_is_the_most_probable_expert(mixture_net):
@@ -409,8 +412,8 @@ def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net
     """Separate experts and a shared trunk (shared_decoder_layers, the config's default for K > 1)."""
     if shared:
         torch.manual_seed(0)
-        mixture_net = CNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3,
-                           shared_decoder_layers=shared).eval()
+        mixture_net = MixtureCNMP(sm_dim=2, task_dim=1, encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=3,
+                                  shared_decoder_layers=shared).eval()
     ctx = random_context(b=3, n=5, g=1)
     q = torch.rand(3, 4)
     perm = torch.tensor([4, 2, 0, 3, 1])
@@ -426,37 +429,6 @@ def test_mixture_permutation_and_padding_invariance_for_every_expert(mixture_net
             torch.testing.assert_close(a, b)  # every expert's μ and σ, and the gate
 
 
-@pytest.mark.parametrize("form", ["cnep", "likelihood"])
-def test_mixture_loss_forms(mixture_net, form):
-    """cnep: Σ_k π_k NLL_k; likelihood: -(1/n) log Σ_k π_k Π_q N_kq; plus the two normalized entropy terms."""
-    ctx = random_context(b=4, g=1)
-    targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
-    targets.valid[:, 0] = True
-    default = mixture_net.mixture_nll
-    mixture_net.mixture_nll = form
-    try:
-        loss, info = mixture_net.training_loss(ctx, targets)
-    finally:
-        mixture_net.mixture_nll = default
-    means, stds, probs = mixture_net.mixture(ctx, targets.phase)
-    nll_bk = torch.stack([torch.stack([
-        CNMP.nll(means[b:b + 1, k], stds[b:b + 1, k], Targets(targets.phase[b:b + 1], targets.values[b:b + 1],
-                                                               targets.valid[b:b + 1])) for k in range(3)])
-        for b in range(4)])  # Eq. 1 of expert k on episode b
-    n = targets.valid.sum(-1).float()
-    if form == "cnep":
-        nll = (probs * nll_bk).sum(-1).mean()
-    else:
-        nll = -(torch.log((probs * torch.exp(-nll_bk * n[:, None])).sum(-1)) / n).mean()
-    h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
-    c_ind, c_batch = mixture_net.gate_entropy_coef, mixture_net.batch_entropy_coef
-    assert (c_ind, c_batch) == (CNMPConfig.gate_entropy_coef, CNMPConfig.batch_entropy_coef) == (0.2, 0.88)
-    want = nll + c_ind * h(probs).mean() / np.log(3) - c_batch * h(probs.mean(0)) / np.log(3)
-    torch.testing.assert_close(loss, want)
-    assert info["nll"] == pytest.approx(nll.item(), rel=1e-5)
-    assert set(info) >= {"nll", "gate_entropy", "batch_entropy", "mae", "std"}
-
-
 def test_mixture_loss_assigned(mixture_net):
     """assigned: the unconditional mixture's likelihood (experts and gate on r = 0) plus each context's experts
     and gate trained on the episode's expert ρ from it (no gradient through ρ); batch entropy on the
@@ -464,20 +436,13 @@ def test_mixture_loss_assigned(mixture_net):
     ctx = random_context(b=4, g=1)
     targets = Targets(torch.rand(4, 6), torch.randn(4, 6, 2), torch.rand(4, 6) < 0.8)
     targets.valid[:, 0] = True
-    default = mixture_net.mixture_nll
-    mixture_net.mixture_nll = "assigned"
-    try:
-        loss, info = mixture_net.training_loss(ctx, targets)
-        with pytest.raises(ValueError, match="empty context"):
-            mixture_net.mixture_loss(torch.zeros(4, 3), torch.full((4, 3), 1 / 3), torch.tensor([6, 6, 6, 6]))
-    finally:
-        mixture_net.mixture_nll = default
+    loss, info = mixture_net.training_loss(ctx, targets)
     means, stds, probs = mixture_net.mixture(ctx, targets.phase)
     r0 = torch.zeros(4, 32)
     means0, stds0 = mixture_net.decode_experts(r0, targets.phase, ctx.task_params)
     probs0 = mixture_net.gate_probs(r0)
     n = targets.valid.sum(-1).float()
-    nll_bk, nll0_bk = (CNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
+    nll_bk, nll0_bk = (MixtureCNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
     log_joint = probs0.log() - nll0_bk * n[:, None]
     rho = torch.softmax(log_joint, -1)
     want_nll = -(torch.logsumexp(log_joint, -1) / n).mean() + (rho * (nll_bk - probs.log())).sum(-1).mean()
@@ -489,11 +454,11 @@ def test_mixture_loss_assigned(mixture_net):
     assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
     assert set(info) >= {"prior_nll", "assigned_nll", "min_expert_share"}
     # unconditional_nll_coef c weighs the unconditional mixture's term only: L(c) - L(1) = (c - 1) NLL⁰_mix
-    mixture_net.mixture_nll, mixture_net.unconditional_nll_coef = "assigned", 0.25
+    mixture_net.unconditional_nll_coef = 0.25
     try:
         loss_c, info_c = mixture_net.training_loss(ctx, targets)
     finally:
-        mixture_net.mixture_nll, mixture_net.unconditional_nll_coef = default, 1.0
+        mixture_net.unconditional_nll_coef = 1.0
     prior_term = -(torch.logsumexp(log_joint, -1) / n).mean()
     torch.testing.assert_close(loss_c, want - 0.75 * prior_term)
     assert info_c["prior_nll"] == pytest.approx(prior_term.item(), rel=1e-5)
@@ -506,19 +471,19 @@ def test_assignment_draws_decides_one_expert_per_episode_from_its_first_draws(mi
     ctx = random_context(b=6, g=1)
     targets = Targets(torch.rand(6, 5), torch.randn(6, 5, 2), torch.rand(6, 5) < 0.8)
     targets.valid[:, 0] = True
-    mixture_net.mixture_nll, mixture_net.assignment_draws = "assigned", p
+    mixture_net.assignment_draws = p
     try:
         loss, info = mixture_net.training_loss(ctx, targets, draws=3)
         with pytest.raises(ValueError, match="whole number of episodes"):
             mixture_net.training_loss(ctx, targets, draws=4)
     finally:
-        mixture_net.mixture_nll, mixture_net.assignment_draws = "assigned", 0
+        mixture_net.assignment_draws = 0
     means, stds, probs = mixture_net.mixture(ctx, targets.phase)
     r0 = torch.zeros(6, 32)
     means0, stds0 = mixture_net.decode_experts(r0, targets.phase, ctx.task_params)
     probs0 = mixture_net.gate_probs(r0)[:2]
     n = targets.valid.sum(-1).float()
-    nll_bk, nll0_bk = (CNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
+    nll_bk, nll0_bk = (MixtureCNMP.nll_per_expert(m, s, targets) for m, s in ((means, stds), (means0, stds0)))
     first = [e * 3 + j for e in range(2) for j in range(p)]  # the rows the empty-context pass sees
     sum0 = (nll0_bk * n[:, None])[first].reshape(2, p, 3).sum(1)  # [E, K]: -log Π_q N⁰ over those queries
     n0 = n[first].reshape(2, p).sum(1)
@@ -533,34 +498,32 @@ def test_assignment_draws_decides_one_expert_per_episode_from_its_first_draws(mi
     assert info["nll"] == pytest.approx(want_nll.item(), rel=1e-5)
 
 
-def test_unconditional_nll_coef_must_be_positive_and_only_with_assigned():
+def test_unconditional_nll_coef_must_be_positive_and_only_with_a_mixture():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
-            CNMP(sm_dim=2, n_experts=2, unconditional_nll_coef=bad)
+            MixtureCNMP(sm_dim=2, n_experts=2, unconditional_nll_coef=bad)
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
             CNMPConfig(n_experts=2, unconditional_nll_coef=bad)
-    for bad in ({}, {"n_experts": 2, "mixture_nll": "likelihood"}):
-        with pytest.raises(ValueError, match="unconditional_nll_coef weighs"):
-            CNMPConfig(unconditional_nll_coef=0.5, **bad)
+    with pytest.raises(ValueError, match="unconditional_nll_coef weighs"):
+        CNMPConfig(unconditional_nll_coef=0.5)
     assert CNMPConfig(n_experts=2, unconditional_nll_coef=0.25).unconditional_nll_coef == 0.25
 
 
 def test_assignment_draws_must_be_a_count():
     with pytest.raises(ValueError, match="assignment_draws"):
-        CNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
+        MixtureCNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
     for bad in (1.5, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
             CNMPConfig(n_experts=2, assignment_draws=bad)
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
-            CNMP(sm_dim=2, n_experts=2, assignment_draws=bad)
-    for bad in ({"n_experts": 1}, {"n_experts": 2, "mixture_nll": "likelihood"}):  # it would do nothing
-        with pytest.raises(ValueError, match="assignment_draws decides"):
-            CNMPConfig(assignment_draws=1, **bad)
+            MixtureCNMP(sm_dim=2, n_experts=2, assignment_draws=bad)
+    with pytest.raises(ValueError, match="assignment_draws decides"):  # K = 1: it would do nothing
+        CNMPConfig(assignment_draws=1, n_experts=1)
     assert CNMPConfig(n_experts=2, assignment_draws=1).assignment_draws == 1
 
 
 def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
-    net = CNMP(sm_dim=2, n_experts=3, mixture_nll="assigned")
+    net = MixtureCNMP(sm_dim=2, n_experts=3)
     log_joint = torch.tensor([[0.0, -50.0, -9.0], [-40.0, 0.0, -3.0], [0.0, -1.0, -30.0], [-2.0, 0.0, -60.0]])
     net.eval()
     assert torch.equal(net.revive_starving(log_joint), log_joint)  # evaluation: untouched, nothing tracked
@@ -575,51 +538,17 @@ def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
     assert "expert_share" not in net.state_dict()  # training state only: checkpoints are unchanged
 
 
-def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_its_gate_is(mixture_net):
-    """``where_decided``: the per-episode entropy term is weighted by 1 - H(π_b)/log K (no gradient through the
-    weight): a uniform gate gets no commitment pressure, a one-hot one the full term; ``always``: weight 1."""
-    nll_bk = torch.zeros(3, 3)
-    probs = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [0.6, 0.3, 0.1], [0.98, 0.01, 0.01]], requires_grad=True)
-    h = -(probs * probs.log()).sum(-1) / np.log(3)
-    default, default_nll = mixture_net.gate_commit, mixture_net.mixture_nll
-    assert default == CNMPConfig.gate_commit == "always"
-    mixture_net.mixture_nll = "likelihood"  # the commitment term does not depend on the NLL's form
-    try:
-        _, always = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
-        mixture_net.gate_commit = "where_decided"
-        loss, weighted = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
-    finally:
-        mixture_net.gate_commit, mixture_net.mixture_nll = default, default_nll
-    assert always["gate_entropy"] == pytest.approx(h.mean().item(), rel=1e-5)
-    assert weighted["gate_entropy"] == pytest.approx(((1 - h) * h).mean().item(), rel=1e-5)
-    assert weighted["gate_commit_weight"] == pytest.approx((1 - h).mean().item(), rel=1e-5)
-    # the uniform episode (weight 0) gets no gradient from the entropy term: its gradient is the one without it
-    (g_decided,) = torch.autograd.grad(loss, probs)
-    coef = mixture_net.gate_entropy_coef
-    try:
-        mixture_net.gate_entropy_coef = 0.0
-        mixture_net.mixture_nll = "likelihood"
-        no_term, _ = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
-    finally:
-        mixture_net.gate_entropy_coef, mixture_net.mixture_nll = coef, default_nll
-    (g_none,) = torch.autograd.grad(no_term, probs)
-    torch.testing.assert_close(g_decided[0], g_none[0])
-    assert not torch.allclose(g_decided[2], g_none[2])
-    with pytest.raises(ValueError, match="gate_commit"):
-        CNMP(sm_dim=2, n_experts=2, gate_commit="sometimes")
-
-
-@pytest.mark.parametrize("k", [0, -2, 1.5, float("nan"), float("inf")])
+@pytest.mark.parametrize("k", [0, -2, 1.5, float("nan"), float("inf"), 1])
 def test_bad_number_of_experts_is_a_clear_error(k):
+    if k != 1:  # K = 1 is the plain CNMP's config, not a mixture's
+        with pytest.raises(ValueError, match="n_experts"):
+            CNMPConfig(n_experts=k)
     with pytest.raises(ValueError, match="n_experts"):
-        CNMPConfig(n_experts=k)
-    with pytest.raises(ValueError, match="n_experts"):
-        CNMP(sm_dim=2, n_experts=k)
+        MixtureCNMP(sm_dim=2, n_experts=k)
 
 
 @pytest.mark.parametrize("field, value", [("gate_entropy_coef", -0.1), ("batch_entropy_coef", -1.0),
-                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0),
-                                          ("mixture_nll", "mse"), ("gate_commit", "sometimes")])
+                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0)])
 def test_bad_mixture_settings(field, value):
     with pytest.raises(ValueError, match=field):
         CNMPConfig(**{field: value})
@@ -657,12 +586,10 @@ def test_mixture_separates_the_two_modes(fitted_mixture):
     np.testing.assert_allclose(probs.sum(), 1.0, rtol=1e-6)
 
 
-def test_assigned_mixture_gives_each_mode_its_expert_and_shares_at_the_shared_start():
-    """mixture_nll="assigned" on the two-mode toy: a mid point commits the gate (> 0.9) to the expert of its
-    mode, the two modes to different experts; the shared start, which does not name a mode, gets both."""
-    torch.manual_seed(0)
-    model = CNMPModel(encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=2, mixture_nll="assigned").fit(
-        toy_demos(n=16), steps=800, batch_size=16, progress=False)
+def test_mixture_gives_each_mode_its_expert_and_shares_at_the_shared_start(fitted_mixture):
+    """The two-mode toy: a mid point commits the gate (> 0.9) to the expert of its mode, the two modes to
+    different experts; the shared start, which does not name a mode, gets both."""
+    model = fitted_mixture
     q = np.linspace(0, 1, 50)
     chosen = []
     for sign in (1, -1):
@@ -707,14 +634,13 @@ def test_api_fit_with_a_seed_is_reproducible_from_initialization_on():
     assert torch.equal(a, b)
 
 
-def test_shared_decoder_layers_and_redundant_gate_commit():
-    """A trunk shared by the experts gives each expert trunk -> own layers; bad sizes are a clear error; the
-    redundancy commitment penalizes π split over identical experts, not over experts predicting different modes."""
+def test_shared_decoder_layers():
+    """A trunk shared by the experts gives each expert trunk -> own layers; bad sizes are a clear error."""
     import torch.nn.functional as F
 
     r, q = torch.randn(4, 128), torch.rand(4, 7)
     for shared in (2, 3):  # the experts' own last hidden layer and output; their output layer only
-        net = CNMP(sm_dim=3, n_experts=3, shared_decoder_layers=shared)
+        net = MixtureCNMP(sm_dim=3, n_experts=3, shared_decoder_layers=shared)
         mean, std = net.decode_experts(r, q)
         for k in range(3):
             x = F.relu(net.trunk(torch.cat([q[..., None], r[:, None].expand(-1, 7, -1)], -1)))
@@ -723,32 +649,20 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
             assert torch.allclose(x[..., :3], mean[:, k], atol=1e-5)
             assert torch.allclose(net.min_std + F.softplus(x[..., 3:]), std[:, k], atol=1e-5)
     with pytest.raises(ValueError, match="shared_decoder_layers"):
-        CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
+        MixtureCNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
     with pytest.raises(ValueError, match="n_experts is 1"):
         CNMPConfig(shared_decoder_layers=1)
     # the default: a mixture shares all hidden layers but the last, K = 1 shares nothing; 0 keeps CNEP's K networks
     assert CNMPConfig(n_experts=4).shared_decoder_layers == 2 and CNMPConfig().shared_decoder_layers == 0
     assert CNMPConfig(n_experts=4, decoder_layers=(64,)).shared_decoder_layers == 0
     assert CNMPConfig(n_experts=4, shared_decoder_layers=0).shared_decoder_layers == 0
-    red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0,
-               mixture_nll="likelihood")
-    probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
-    with pytest.raises(ValueError, match="similarity"):
-        red.mixture_loss(nll, probs, torch.tensor([4]))
-    same, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.ones(1, 2, 2))
-    apart, _ = red.mixture_loss(nll, probs, torch.tensor([4]), torch.eye(2)[None])
-    assert same.item() - apart.item() == pytest.approx(1.0)
 
 
-def test_expert_similarity_is_one_for_identical_experts_and_small_for_distinct_ones():
-    """s_kl = 1 where two experts predict the same trajectory, -> 0 where their means differ by many σ."""
-    net = CNMP(sm_dim=11, n_experts=3)
-    with torch.no_grad():
-        for p in (*net.decoders.weights, *net.decoders.biases):
-            p[1] = p[0]
-        net.decoders.biases[-1][2, :11] += 50.0  # expert 2's mean shifted by 50 in every dim
-    s = net.expert_similarity(torch.randn(2, 128))
-    assert s.shape == (2, 3, 3)
-    assert torch.allclose(s[:, 0, 1], torch.ones(2)) and torch.allclose(s.diagonal(dim1=1, dim2=2), torch.ones(2, 3))
-    assert (s[:, 0, 2] < 1e-3).all() and torch.allclose(s, s.transpose(1, 2))
-    assert not s.requires_grad
+def test_mixture_parameter_names_are_the_checkpoints():
+    """The mixture's parameters keep their names in checkpoints: trunk.*, decoders.weights/biases.*, gate.*."""
+    net = MixtureCNMP(sm_dim=2, encoder_layers=(8, 8), decoder_layers=(8, 8, 8), n_experts=2, shared_decoder_layers=2)
+    names = set(net.state_dict())
+    assert names == ({f"encoder.{i}.{p}" for i in (0, 2) for p in ("weight", "bias")}
+                     | {f"trunk.{i}.{p}" for i in (0, 2) for p in ("weight", "bias")}
+                     | {f"decoders.{p}.{i}" for p in ("weights", "biases") for i in (0, 1)}
+                     | {"gate.weight", "gate.bias"})

@@ -35,7 +35,7 @@ import logging
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -47,9 +47,9 @@ from lerobot_cnmp.execution.modes import ModeSelector
 from lerobot.utils.constants import OBS_ENV_STATE
 
 from lerobot_cnmp.execution.conditions import decode_conditions
+from lerobot_cnmp.model.cnmp import Context
+from lerobot_cnmp.model.mixture import MixtureCNMP, pick_expert
 
-if TYPE_CHECKING:  # pragma: no cover
-    from lerobot_cnmp.policy.modeling_cnmp import Context
 
 logger = logging.getLogger(__name__)
 
@@ -415,8 +415,6 @@ class CNMPExecutor:
         """Conditions from ``environment_state`` slots, the user's conditions, the sensed dims at the first step
         at t = 0, (with ``online_feedback``) the current sensed dims (at τ, or τ - Δ in the tied layout), and
         ``extra`` points (phase [B, K], values [B, K, D], mask [B, K, D]; RTC's leftover actions)."""
-        from lerobot_cnmp.policy.modeling_cnmp import Context
-
         c, e = self.config, self.settings
         self.policy.normalizer.require()
         need_state = (e.online_feedback or e.condition_on_start) and bool(c.spec.sensed)
@@ -483,10 +481,8 @@ class CNMPExecutor:
         """(μ, σ) of the SM at ``queries`` [B, M] given ``context`` (normalized units), [B, M, D] each. The one
         place execution calls the network."""
         model = self.policy.model
-        if model.n_experts == 1:
+        if not isinstance(model, MixtureCNMP):
             return self.policy.network()(context, queries)
-        from lerobot_cnmp.policy.modeling_cnmp import pick_expert  # (modeling imports this module)
-
         means, stds, probs = model.mixture(context, queries)
         return pick_expert(means, stds, self.modes(probs))
 

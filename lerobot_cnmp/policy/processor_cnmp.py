@@ -3,7 +3,7 @@ unnormalize, cpu), with its normalizer steps passing CNMP's features through.
 
 CNMP normalizes every SM input -- demonstrations, sensed dims, condition values -- and γ itself, with one set
 of per-dim statistics computed from its training demonstrations and saved with its weights
-(:class:`lerobot_cnmp.policy.modeling_cnmp.SMNormalizer`); the policy's action comes out in the dataset's units.
+(:class:`lerobot_cnmp.model.normalizer.SMNormalizer`); the policy's action comes out in the dataset's units.
 So the processors save, load and push like any other policy's, and ``lerobot-train --policy.path=...``
 (fine-tuning, which rebuilds the processors with the new dataset's raw statistics) cannot change CNMP's
 scaling: the normalization a fine-tuned model sees is the one it was trained with.

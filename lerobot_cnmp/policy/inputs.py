@@ -1,0 +1,53 @@
+"""The episode-level input of E and Q: the normalized task parameters γ and one conv-encoder embedding per image
+feature, joined along the last dim; read at an episode's first step (execution) or its first frame (training)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from lerobot_cnmp.execution.executor import check_finite
+
+
+def join(parts: list[Tensor]) -> Tensor | None:
+    """The parts side by side along the last dim; None when there are none."""
+    if not parts:
+        return None
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+
+
+def embed(image_encoders: nn.ModuleDict, key: str, images: Tensor) -> Tensor:
+    """The embedding of image feature ``key``'s images [B, C, H, W] by its conv encoder, [B, E]."""
+    return image_encoders[key.replace(".", "_")](images)
+
+
+def observed_task_params(spec, batch: dict[str, Tensor]) -> Tensor | None:
+    """γ read from an observation (raw units), [B, G]; None when the SM ``spec`` has no task features."""
+    parts = []
+    for key, size in spec.task_features:
+        if key not in batch:
+            raise KeyError(f"this CNMP is conditioned on task parameters: the observation needs {key!r}; it has "
+                           f"{sorted(batch)}")
+        g = batch[key]
+        g = g.reshape(g.shape[0], -1) if g.ndim != 3 else g[:, 0]
+        if g.shape[-1] != size:
+            raise ValueError(f"task feature {key!r} has {g.shape[-1]} values, the CNMP was trained with {size}")
+        check_finite(key, g)
+        parts.append(g.float())
+    return torch.cat(parts, dim=-1) if parts else None
+
+
+def observed_episode_inputs(config, normalizer, image_encoders: nn.ModuleDict, batch: dict[str, Tensor]
+                            ) -> Tensor | None:
+    """The episode-level input read from an observation: normalized γ and each image feature's embedding,
+    [B, episode_dim]; None when there is neither."""
+    gamma = observed_task_params(config.spec, batch)
+    parts = [] if gamma is None else [normalizer.task(gamma)]
+    for key in config.image_keys:
+        if key not in batch:
+            raise KeyError(f"this CNMP is conditioned on the image {key!r}; the observation has {sorted(batch)}")
+        img = batch[key]
+        img = img[:, 0] if img.ndim == 5 else img
+        check_finite(key, img)
+        parts.append(embed(image_encoders, key, img))
+    return join(parts)
