@@ -27,7 +27,9 @@ from torch import Tensor, nn
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot_cnmp.data.bank import EpisodeBank
 from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL, CNMPConfig
-from lerobot_cnmp.execution.executor import CNMPExecutor, check_finite
+from lerobot_cnmp.execution.executor import CNMPExecutor
+from lerobot_cnmp.execution.modes import ModeSelector
+from lerobot_cnmp.execution.sensing import check_finite
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -813,7 +815,7 @@ class CNMPPolicy(PreTrainedPolicy):
         self._numpy_model: NumpyCNMP | None = None  # execution copy of self.model, see network()
         self._numpy_key: tuple | None = None
         self._numpy_params: tuple | None = None  # (model, its parameters): what the numpy copy's key reads
-        self.executor = CNMPExecutor(self)  # the execution loop and its state (validates the user's conditions)
+        self.executor = self._executor()  # the execution loop and its state (validates the user's conditions)
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
@@ -950,6 +952,15 @@ class CNMPPolicy(PreTrainedPolicy):
         the user's conditions stay."""
         if getattr(self, "executor", None) is not None:
             self.executor.reset()
+
+    def _executor(self) -> CNMPExecutor:
+        """The execution loop, given its collaborators (not the policy)."""
+        c = self.config
+        return CNMPExecutor(
+            self.network, self.normalizer, c.spec, c.execution, c, self.episode_inputs, self.task_params,
+            modes=ModeSelector(c.mode_switch_margin, c.expert_selection) if c.n_experts > 1 else None,
+            conditions=c.conditions,
+            feature_widths={k: ft.shape[0] for k, ft in c.input_features.items() if len(ft.shape) == 1})
 
     def network(self):
         """The network that execution runs: the numpy copy on CPU (``execution.numpy_execution``, rebuilt
