@@ -184,7 +184,8 @@ class CNMPModel:
         conditions = check_conditions(conditions, d)
         ph = np.array([[c.phase for c in conditions]], np.float32)
         mask = np.stack([c.mask() for c in conditions])[None]
-        vals = np.nan_to_num((np.array([c.values], np.float32) - self.sm_mean) / self.sm_std) * mask
+        raw = np.array([[c.values for c in conditions]], np.float32)
+        vals = np.nan_to_num((raw - self.sm_mean) / self.sm_std) * mask
         gamma = None
         if self.config.task_dim:
             if task_params is None:
