@@ -21,7 +21,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.bank import EpisodeBank
-from lerobot_cnmp.execution.conditions import Condition, layout_size
+from lerobot_cnmp.execution.conditions import Condition, check_conditions, layout_size
 from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS, CNMPConfig
 from lerobot_cnmp.model.cnmp import Context
 from lerobot_cnmp.model.mixture import mixture_of, n_experts
@@ -183,21 +183,11 @@ class CNMPModel:
         d = self.config.sm_dim
         if not conditions:
             raise ValueError("empty context: give at least one Condition to condition on")
-        ph = np.zeros((1, len(conditions)), np.float32)
-        vals = np.zeros((1, len(conditions), d), np.float32)
-        mask = np.zeros((1, len(conditions), d), np.float32)
-        for k, c in enumerate(conditions):
-            if len(c.values) != d:
-                raise ValueError(f"condition {k} has {len(c.values)} values; the SM has {d} dims")
-            if not 0.0 <= c.phase <= 1.0:
-                raise ValueError(f"condition {k} has phase {c.phase}, outside [0, 1]")
-            if c.dims is not None and (not c.dims or min(c.dims) < 0 or max(c.dims) >= d):
-                raise ValueError(f"condition {k} constrains dims {c.dims}; valid SM dims are 0..{d - 1}")
-            v = np.asarray(c.values, np.float32)
-            m = c.mask()
-            if not np.isfinite(v[m > 0]).all():
-                raise ValueError(f"condition {k} has NaN or infinite values in its constrained dims")
-            ph[0, k], vals[0, k], mask[0, k] = c.phase, np.nan_to_num((v - self.sm_mean) / self.sm_std) * m, m
+        conditions = check_conditions(conditions, d)
+        ph = np.array([[c.phase for c in conditions]], np.float32)
+        mask = np.stack([c.mask() for c in conditions])[None]
+        raw = np.array([[c.values for c in conditions]], np.float32)
+        vals = np.nan_to_num((raw - self.sm_mean) / self.sm_std) * mask
         gamma = None
         if self.config.task_dim:
             if task_params is None:

@@ -18,7 +18,7 @@ from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from lerobot_cnmp.api import CNMPModel, load_pretrained
 from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.execution.config import ExecutionConfig
-from lerobot_cnmp.execution.executor import parse_conditions
+from lerobot_cnmp.execution.conditions import parse_conditions
 from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
 
 T = 100
@@ -96,7 +96,7 @@ def test_conditions_in_seconds_files_and_the_config(policy, ckpt, tmp_path):
     y = c.sm_names[1]
     half = 0.5 * c.demo_duration_s
     a = parse_conditions([{"time_s": half, y: 0.3}], c.spec, c.demo_duration_s, 8, c.sm_names)
-    assert a[0].phase == pytest.approx(0.5) and a[0].mask.tolist() == [0.0, 1.0] and a[0].values[1] == pytest.approx(0.3)
+    assert a[0].phase == pytest.approx(0.5) and a[0].mask().tolist() == [0.0, 1.0] and a[0].values[1] == pytest.approx(0.3)
     f = tmp_path / "goal.json"
     f.write_text(json.dumps({"t": 1.0, y: 0.8}))
     g = tmp_path / "goal.yaml"

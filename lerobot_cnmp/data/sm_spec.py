@@ -190,6 +190,17 @@ def default_task_features(ds_features: dict[str, dict], sm_features: set[str]) -
     return []
 
 
+def _mismatch_hint(sm, ds_features: dict[str, dict]) -> str:
+    """For an error against a declared SM: the declaration and the features, and what a mismatch usually is
+    (a checkpoint whose SM was resolved on other features than the env's/robot's)."""
+    if not sm:
+        return ""
+    shapes = {k: tuple(ft.get("shape", ())) for k, ft in numeric_features(ds_features).items()}
+    return (f". The SM {list(sm)} does not match the features {shapes}: a checkpoint run on an env/robot other "
+            "than the one it was trained on gives this (its SM is the checkpoint's, the features are the env's); "
+            "run it on its own env/robot, or, when training, declare the SM for this dataset (--policy.sm)")
+
+
 def resolve(sm: tuple[str, ...] | None, task_features: tuple[str, ...] | None, tied: bool,
             ds_features: dict[str, dict], use_task_params: bool | None = None) -> SMSpec:
     """The SM spec of a declaration against a dataset's (or a config's) features; a clear error for a
@@ -216,7 +227,8 @@ def resolve(sm: tuple[str, ...] | None, task_features: tuple[str, ...] | None, t
             return feature, [names.index(dim)], names
         if dim.lstrip("-").isdigit() and 0 <= int(dim) < len(names):
             return feature, [int(dim)], names
-        raise ValueError(f"{what} {entry!r}: feature {feature!r} has no dim {dim!r}; its dims are {names}")
+        raise ValueError(f"{what} {entry!r}: feature {feature!r} has no dim {dim!r}; its dims are {names}"
+                         f"{_mismatch_hint(sm, ds_features)}")
 
     for entry in entries:
         head, sep, frame = str(entry).partition(FRAME_SEP)
@@ -240,7 +252,8 @@ def resolve(sm: tuple[str, ...] | None, task_features: tuple[str, ...] | None, t
     got = {d.index for d in dims if d.feature == ACTION}
     if got != set(range(action_dim)):
         missing = [_dim_names(numeric[ACTION])[k] for k in range(action_dim) if k not in got]
-        raise ValueError(f"the SM must hold every {ACTION!r} dim (execution outputs them); missing {missing}")
+        raise ValueError(f"the SM must hold every {ACTION!r} dim (execution outputs them); missing {missing}"
+                         f"{_mismatch_hint(sm, ds_features)}")
     if tied:
         if any(d.feature != ACTION for d in dims):
             raise ValueError("state_tracks_action=True: the SM is the action alone (observation.state measures it)")

@@ -1,8 +1,11 @@
 """The execution loop of a CNMP (paper Sec. III, Fig. 3), apart from the model and its training.
 
-:class:`~lerobot_cnmp.execution.config.ExecutionConfig` (``--policy.execution.*``) holds every execution setting; :class:`CNMPExecutor` holds
-the per-env execution state and runs the loop for :class:`~lerobot_cnmp.policy.modeling_cnmp.CNMPPolicy`, which
-only forwards LeRobot's calls (``select_action``, ``predict_action_chunk``, ``reset``) to it.
+:class:`CNMPExecutor` is given what it runs -- the network (a zero-arg callable returning the current one: the
+torch model or its numpy twin), the SM normalizer, the SM spec, the settings
+(:class:`~lerobot_cnmp.execution.config.ExecutionConfig`, ``--policy.execution.*``, plus the trained movement's
+facts, :class:`MovementFacts`) and a callable computing the episode-level input (γ and image embeddings) -- and
+holds the per-env execution state. The policy only forwards LeRobot's calls (``select_action``,
+``predict_action_chunk``, ``reset``) to it.
 
 Per env the executor keeps a phase τ (0 after ``reset``) that advances by Δ = 1 / (control_fps x
 demo_duration_s) per control step. Each step it
@@ -12,10 +15,12 @@ demo_duration_s) per control step. Each step it
    point (``phase_stop_units="sigma"``), so a near-constant dim, whose normalized value is noisy but whose
    predicted σ says so, does not stall the phase. A phase held for ``phase_stop_timeout_s`` seconds resumes
    anyway (a blocked robot does not freeze the movement forever; a warning is logged once per episode);
+   (:mod:`lerobot_cnmp.execution.feedback`)
 2. conditions on the episode's conditions -- the user's (:meth:`CNMPExecutor.set_conditions`,
    ``--policy.conditions``) and those an env writes in ``observation.environment_state`` slots -- on the
    sensed dims at the first step (t = 0, ``condition_on_start``) and, with ``online_feedback``, on the current
    sensed dims: at τ in the joint layout, at τ - Δ in the tied layout (the state the previous command reached);
+   (:mod:`lerobot_cnmp.execution.points`, :mod:`lerobot_cnmp.execution.sensing`)
 3. outputs the predicted ``action`` dims at τ (joint layout), or the PD command s + kp·e + kd·(e - e_prev),
    e = μ(τ) - s (tied layout), in the dataset's units.
 
@@ -25,216 +30,101 @@ again continues where it ended. With RTC (``prev_chunk_left_over``) the new chun
 the first leftover action and is conditioned on the leftover actions that run while it is computed
 (``inference_delay``), at their own phases: the CNMP passes through them, so the boundary is continuous.
 
-All predictions go through :meth:`CNMPExecutor.predict` (one call site: a mixture of CNMPs plugs in there).
+All predictions go through :meth:`CNMPExecutor.predict` (one call site: with a mixture of CNMPs the
+:class:`~lerobot_cnmp.execution.modes.ModeSelector` picks the followed expert there).
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import math
-from dataclasses import dataclass, fields
-from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Protocol
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from lerobot_cnmp.execution.config import ExecutionConfig
-from lerobot_cnmp.execution.modes import ModeSelector
-
 from lerobot.utils.constants import OBS_ENV_STATE
 
-from lerobot_cnmp.execution.conditions import decode_conditions
+from lerobot_cnmp.execution import feedback
+from lerobot_cnmp.execution.conditions import Condition, parse_conditions
+from lerobot_cnmp.execution.config import ExecutionConfig
+from lerobot_cnmp.execution.modes import ModeSelector
+from lerobot_cnmp.execution.points import ContextPoints
+from lerobot_cnmp.execution.sensing import Sensing, check_finite  # noqa: F401  (check_finite: re-exported)
 from lerobot_cnmp.model.cnmp import Context
-from lerobot_cnmp.model.mixture import MixtureCNMP, pick_expert
-
+from lerobot_cnmp.model.mixture import pick_expert
 
 logger = logging.getLogger(__name__)
 
-# --------------------------------------------------------------------------------------------------------
-# Conditions from the user
-# --------------------------------------------------------------------------------------------------------
 
+class MovementFacts(Protocol):
+    """What execution needs to know of the trained CNMP besides its network, read when used (the policy
+    learns ``demo_duration_s`` and ``dataset_fps`` from a dataset after it builds the executor)."""
 
-@dataclass(frozen=True)
-class UserCondition:
-    """One validated condition: SM ``values`` (dataset units) at ``phase``, on the SM dims ``mask`` marks."""
-
-    phase: float
-    values: np.ndarray  # [D], NaN outside the mask
-    mask: np.ndarray  # [D] 0/1
-
-
-def load_condition_spec(spec) -> list[dict]:
-    """Conditions as a list of dicts from: a list/dict, a JSON string, or a path to a JSON/YAML file."""
-    if spec is None:
-        return []
-    if isinstance(spec, (str, Path)):
-        text = str(spec).strip()
-        if not text:
-            return []
-        path = Path(text)
-        if text[0] not in "[{" and path.suffix.lower() in (".json", ".yaml", ".yml"):
-            if not path.is_file():
-                raise FileNotFoundError(f"conditions file {path} does not exist")
-            text = path.read_text()
-            if path.suffix.lower() in (".yaml", ".yml"):
-                import yaml
-
-                spec = yaml.safe_load(text)
-            else:
-                spec = json.loads(text)
-        else:
-            # JSON, or YAML flow style (what draccus hands over from the command line: it parses a CLI value
-            # as YAML and a str field gets the Python repr of the list)
-            import yaml
-
-            try:
-                spec = yaml.safe_load(text)
-            except yaml.YAMLError as e:
-                raise ValueError(f"conditions {text!r} are neither JSON/YAML nor a path to a .json/.yaml file: {e}") from e
-            if isinstance(spec, str):
-                raise ValueError(f"conditions {text!r} are neither JSON/YAML nor a path to a .json/.yaml file (no such "
-                                 "file)")
-    if isinstance(spec, dict):
-        spec = [spec]
-    if not isinstance(spec, (list, tuple)) or not all(isinstance(c, dict) for c in spec):
-        raise ValueError(f"conditions must be a dict or a list of dicts (e.g. [{{\"t\": 1.0, \"x\": 0.5}}]), got {spec!r}")
-    return [dict(c) for c in spec]
-
-
-def dim_lookup(spec, sm_names=None) -> dict[str, list[int]]:
-    """Every name a user may give an SM dim: the dataset's dim name (all SM dims of that name, e.g. the state
-    and the action of one joint), the SM's unique name (``state.x`` when the name repeats; ``sm_names``, saved
-    in the checkpoint), ``feature:name`` and ``feature:index``."""
-    short = {"observation.state": "state", "action": "action"}
-    unique = list(sm_names) if sm_names is not None and len(sm_names) == spec.size else list(spec.names)
-    out: dict[str, list[int]] = {}
-    for i, (d, u) in enumerate(zip(spec.dims, unique, strict=True)):
-        prefix = f"{short.get(d.feature, d.feature)}."
-        bare = u[len(prefix):] if u.startswith(prefix) and u != d.name else u
-        for key in {bare, u, f"{d.feature}:{bare}", d.key}:
-            out.setdefault(key, [])
-            if i not in out[key]:
-                out[key].append(i)
-    return out
-
-
-def parse_conditions(raw, spec, demo_duration_s: float | None, capacity: int, sm_names=None) -> list[UserCondition]:
-    """Validate user conditions against an SM: each has ``t`` (phase in [0, 1]) or ``time_s`` (seconds into
-    the movement, / demo_duration_s) and values by dim name. Any error names the condition and the problem."""
-    items = load_condition_spec(raw)
-    if len(items) > capacity:
-        raise ValueError(f"{len(items)} conditions given; this CNMP takes at most {capacity} (max_conditions)")
-    names = dim_lookup(spec, sm_names)
-    display = list(sm_names) if sm_names is not None and len(sm_names) == spec.size else spec.names
-    out = []
-    for k, item in enumerate(items):
-        item = dict(item)
-        if ("t" in item) == ("time_s" in item):
-            raise ValueError(f"condition {k} {item}: give its time as exactly one of 't' (phase in [0, 1]) or "
-                             "'time_s' (seconds from the movement's start)")
-        if "t" in item:
-            phase = _number(item.pop("t"), k, "t")
-        else:
-            seconds = _number(item.pop("time_s"), k, "time_s")
-            if not demo_duration_s:
-                raise ValueError(f"condition {k}: 'time_s' needs the demonstrations' duration (demo_duration_s), "
-                                 "which this checkpoint does not have; give the phase 't'")
-            phase = seconds / demo_duration_s
-        if not 0.0 <= phase <= 1.0:
-            raise ValueError(f"condition {k}: phase {phase:g} is outside [0, 1] (the movement lasts "
-                             f"{demo_duration_s or '?'} s)")
-        if not item:
-            raise ValueError(f"condition {k} constrains no dim; give values by name, one of {sorted(names)}")
-        values = np.full(spec.size, np.nan, dtype=np.float32)
-        mask = np.zeros(spec.size, dtype=np.float32)
-        for name, value in item.items():
-            name = str(name)  # YAML reads a dim named 1 as an int
-            if name not in names:
-                raise ValueError(f"condition {k}: unknown dim {name!r}; the SM's dims are {sorted(names)}")
-            v = _number(value, k, name)
-            for i in names[name]:
-                if mask[i] and values[i] != v:
-                    raise ValueError(f"condition {k} gives SM dim {display[i]!r} two values")
-                values[i], mask[i] = v, 1.0
-        out.append(UserCondition(float(phase), values, mask))
-    return out
-
-
-def _number(value, k: int, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"condition {k}: {name!r} = {value!r} is not a number") from None
-    if not math.isfinite(v):
-        raise ValueError(f"condition {k}: {name!r} = {value!r} is NaN or infinite")
-    return v
-
-
-# --------------------------------------------------------------------------------------------------------
-# The executor
-# --------------------------------------------------------------------------------------------------------
+    demo_duration_s: float | None  # the demonstrations' median duration: the phase's pace
+    dataset_fps: float | None  # the demonstrations' rate: the control rate when execution.control_fps is None
+    max_conditions: int  # the context points the CNMP takes (user conditions + environment_state slots)
+    env_condition_slots: int  # the condition slots of observation.environment_state
+    sm_names: tuple[str, ...] | None  # unique SM dim names (the user's conditions name dims by them)
 
 
 class CNMPExecutor:
-    """Per-env execution state and the execution loop of one CNMP policy.
+    """Per-env execution state and the execution loop of one CNMP.
 
-    ``policy`` gives the pieces the loop needs and does not own: its ``config`` (SM spec, ``execution``,
-    durations), ``normalizer`` (SM units), ``network()`` (the torch model or its numpy copy) and
-    ``episode_inputs(batch)`` (γ and image embeddings)."""
+    Args:
+        network: zero-arg callable returning the network to run now: called as ``net(context, queries)`` ->
+            (μ, σ); with ``modes`` (a mixture) ``net.mixture(context, queries)`` -> (μ_k, σ_k, π).
+        normalizer: the SM statistics (``sm``, ``sm_inverse``, ``sm_std``, ``task``, ``require``).
+        spec: the SM spec (:class:`~lerobot_cnmp.data.sm_spec.SMSpec`).
+        settings: the execution settings, read when used (changing a field applies at the next step).
+        movement: the trained movement's facts (:class:`MovementFacts`).
+        episode_inputs: batch -> the episode-level input of the network (γ and image embeddings) or None.
+        task_params: batch -> raw γ [B, G] (the task-frame origins of SM dims declared in the frame of γ).
+        modes: the expert rule of a mixture CNMP; None for a single CNMP.
+        conditions: the user's initial conditions (see :meth:`set_conditions`).
+        feature_widths: dims of each observation feature the CNMP was trained on (checked when sensed).
+    """
 
-    def __init__(self, policy):
-        self.policy = policy
-        self._user: list[UserCondition] = []
-        self._user_tensors: tuple | None = None
-        self._user_group: tuple | None = None  # (the _user_tensors it expands, n, the group of n envs)
-        self._index_cache: dict = {}
-        self._slots_cache: tuple | None = None
+    def __init__(self, network: Callable[[], Any], normalizer, spec, settings: ExecutionConfig,
+                 movement: MovementFacts, episode_inputs: Callable[[dict], Tensor | None],
+                 task_params: Callable[[dict], Tensor | None], modes: ModeSelector | None = None,
+                 conditions=None, feature_widths: dict[str, int] | None = None):
+        self.network, self.normalizer, self.spec = network, normalizer, spec
+        self.settings, self.movement = settings, movement
+        self.episode_inputs, self.modes = episode_inputs, modes
+        self.sensing = Sensing(spec, normalizer, feature_widths, task_params)
+        self.points = ContextPoints(normalizer, spec.size)
         self.reset()
-        self.set_conditions(policy.config.conditions)
+        self.set_conditions(conditions)
 
     # ---- settings ---------------------------------------------------------------------------------------
 
     @property
-    def config(self):
-        return self.policy.config
-
-    @property
-    def settings(self) -> ExecutionConfig:
-        return self.policy.config.execution
-
-    @property
     def control_fps(self) -> float:
-        c = self.config
-        return c.execution.control_fps or c.dataset_fps or 1.0
+        return self.settings.control_fps or self.movement.dataset_fps or 1.0
 
     @property
     def phase_step(self) -> float:
-        c, e = self.config, self.settings
+        e = self.settings
         if e.phase_step is not None:
             return e.phase_step
-        if c.demo_duration_s is None:
+        duration = self.movement.demo_duration_s
+        if duration is None:
             raise RuntimeError(
                 "demo_duration_s is unknown: train on a dataset (it is set from the episodes' timestamps) or set "
                 "--policy.demo_duration_s or --policy.execution.phase_step"
             )
-        return min(1.0, 1.0 / (self.control_fps * c.demo_duration_s))
+        return min(1.0, 1.0 / (self.control_fps * duration))
 
     # ---- state --------------------------------------------------------------------------------------------
 
     def reset(self) -> None:
         """Restart every env's execution state (the user's conditions stay)."""
         self.phase: Tensor | None = None  # τ per env: the phase of the last action emitted
-        self.start: Tensor | None = None  # sensed SM at the first step (condition_on_start), normalized
         self.target: Tensor | None = None  # tied: SM commanded at the previous step (normalized)
         self.expected: Tensor | None = None  # joint: sensed SM predicted for this step (normalized)
         self.reference_std: Tensor | None = None  # σ of target / expected
         self.error: Tensor | None = None  # previous PD error e, for the D term
         self.inputs: Tensor | None = None  # γ and image embeddings read at the first step
-        self.origin: Tensor | None = None  # raw γ of the task-frame dims at the first step (SM layout)
         self.has_inputs = False
         self.held_steps: Tensor | None = None  # consecutive steps the phase has been held, per env
         self.timed_out = False  # the phase-stop timeout fired in this episode (warning logged)
@@ -243,10 +133,15 @@ class CNMPExecutor:
         self.last_chunk_phase: Tensor | None = None
         self.last_chunk_step: int | None = None  # the caller's timestep of the last chunk's first action
         self.last_std: Tensor | None = None  # σ of the last action(s) returned, dataset units
-        self._start_cache: tuple | None = None  # (start, its context point)
-        self._static_cache: tuple | None = None  # (groups, their concatenation, every env has a valid point)
-        c = self.config
-        self.modes = ModeSelector(c.mode_switch_margin, c.expert_selection)  # which expert is followed (K > 1)
+        self.points.reset()
+        self.sensing.reset()
+        if self.modes is not None:
+            self.modes.reset()  # which expert is followed (K > 1)
+
+    @property
+    def start(self) -> Tensor | None:
+        """The sensed SM at the episode's first step (normalized), kept as a condition at t = 0."""
+        return self.points.start
 
     def _ensure_state(self, batch: dict[str, Tensor]) -> int:
         ref = next((v for k, v in batch.items() if isinstance(v, Tensor) and k.startswith("observation.")), None)
@@ -262,151 +157,37 @@ class CNMPExecutor:
     # ---- conditions -------------------------------------------------------------------------------------
 
     def set_conditions(self, conditions) -> None:
-        """Set the user's conditions (a list of dicts, a dict, a JSON string or a .json/.yaml path; None or []
-        clears them) for every env, in the dataset's units and dim names, e.g.
+        """Set the user's conditions (a list of dicts or :class:`Condition` objects, a dict, a JSON string or a
+        .json/.yaml path; None or [] clears them) for every env, in the dataset's units and dim names, e.g.
         ``[{"t": 1.0, "shoulder_pan.pos": 12.5, "gripper.pos": 0}]`` (``t``: phase; or ``time_s``: seconds).
         Validated at once (a bad condition raises before anything moves); the next step or chunk is planned
         with them (a goal that moves mid-episode: the executor re-plans from the current phase)."""
-        c = self.config
-        parsed = parse_conditions(conditions, c.spec, c.demo_duration_s, c.max_conditions, c.sm_names)
-        if len(parsed) + c.env_condition_slots > c.max_conditions:
+        m = self.movement
+        parsed = parse_conditions(conditions, self.spec, m.demo_duration_s, m.max_conditions, m.sm_names)
+        if len(parsed) + m.env_condition_slots > m.max_conditions:
             raise ValueError(
-                f"{len(parsed)} user conditions + {c.env_condition_slots} environment_state slots exceed this CNMP's "
-                f"max_conditions={c.max_conditions}")
-        self._user = parsed
-        self._user_tensors = None
+                f"{len(parsed)} user conditions + {m.env_condition_slots} environment_state slots exceed this CNMP's "
+                f"max_conditions={m.max_conditions}")
+        self.points.set_user(parsed)
 
     @property
-    def conditions(self) -> list[UserCondition]:
-        return list(self._user)
-
-    def _user_context(self, n: int, device) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
-        if not self._user:
-            return None
-        key = self._normalizer_key()
-        if self._user_tensors is None or self._user_tensors[0].device != torch.device(device) or \
-                self._user_tensors[3] != key:
-            norm = self.policy.normalizer
-            norm.require()
-            phase = torch.tensor([u.phase for u in self._user], dtype=torch.float32, device=device)
-            raw = torch.from_numpy(np.stack([u.values for u in self._user])).to(device)
-            mask = torch.from_numpy(np.stack([u.mask for u in self._user])).to(device)
-            values = torch.where(mask > 0.5, norm.sm(torch.nan_to_num(raw)), torch.zeros_like(raw))
-            self._user_tensors = (phase, values, mask, key)
-        cached = self._user_group  # the batch-sized group, kept while the conditions and n stay
-        if cached is None or cached[0] is not self._user_tensors or cached[1] != n:
-            phase, values, mask, _ = self._user_tensors
-            k = phase.shape[0]
-            group = (phase[None].expand(n, k), values[None].expand(n, -1, -1), mask[None].expand(n, -1, -1),
-                     torch.ones(n, k, dtype=torch.bool, device=device))
-            self._user_group = cached = (self._user_tensors, n, group)
-        return cached[2]
-
-    def condition_slots(self, batch: dict[str, Tensor]):
-        """The ``environment_state`` slots as context points (phase, normalized values, mask, valid); an env
-        writes the same slots every step of an episode, so the last decoding is reused while they are equal."""
-        env = batch[OBS_ENV_STATE]
-        cached, key = self._slots_cache, self._normalizer_key()
-        if cached is not None and cached[2] == key and cached[0].shape == env.shape and \
-                cached[0].device == env.device and torch.equal(cached[0], env):
-            return cached[1]
-        out = self._decode_slots(env)
-        self._slots_cache = (env.clone(), out, key)
-        return out
-
-    def _normalizer_key(self) -> tuple:
-        """Changes whenever the SM statistics do (cached normalized conditions are then rebuilt)."""
-        n = self.policy.normalizer
-        return (n.sm_mean.data_ptr(), n.sm_mean._version, n.sm_std.data_ptr(), n.sm_std._version)
-
-    def _decode_slots(self, env: Tensor):
-        d = self.config.sm_dim
-        present, c_phase, c_values, c_mask = decode_conditions(env, d)
-        given = present > 0.5
-        check_finite(OBS_ENV_STATE + " (flags, phases, masks)", torch.stack([present, c_phase], -1))
-        used = given[..., None] & (c_mask > 0.5)
-        if bool((~torch.isfinite(c_values) & used).any()):
-            raise ValueError(f"a condition in {OBS_ENV_STATE} has NaN or infinite values in a constrained dim")
-        if bool(((c_phase < 0) | (c_phase > 1))[given].any()):
-            raise ValueError("a condition in environment_state has a phase outside [0, 1]")
-        norm = self.policy.normalizer
-        values = torch.where(used, norm.sm(torch.nan_to_num(c_values.float())), torch.zeros_like(c_values))
-        return c_phase, values, c_mask.float(), given & (c_mask.sum(-1) > 0)
+    def conditions(self) -> list[Condition]:
+        return list(self.points.user)
 
     # ---- sensing ------------------------------------------------------------------------------------------
 
+    def sensed_sm(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """The live observation's sensed dims as a normalized SM vector [B, D] (other dims 0)."""
+        return self.sensing.sensed_sm(batch)
+
     def dims_mask(self, like: Tensor, dims) -> Tensor:
-        """A 0/1 mask shaped like ``like`` with ones at SM ``dims`` (None: all); built once per shape and device
-        (read only: callers never write into it)."""
-        key = ("mask", None if dims is None else tuple(dims), tuple(like.shape), like.device, like.dtype)
-        mask = self._index_cache.get(key)
-        if mask is None:
-            if dims is None:
-                mask = torch.ones_like(like)
-            else:
-                mask = torch.zeros_like(like)
-                mask[..., list(dims)] = 1.0
-            self._index_cache[key] = mask
-        return mask
+        return self.sensing.dims_mask(like, dims)
 
     def feedback_mask(self, like: Tensor) -> Tensor:
         """The fed-back dims: ``feedback_dims``, else every sensed dim."""
-        spec, e = self.config.spec, self.settings
+        spec, e = self.spec, self.settings
         dims = e.feedback_dims if e.feedback_dims is not None else (None if spec.tied else spec.sensed)
         return self.dims_mask(like, dims)
-
-    def sensed_sm(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """The live observation's sensed dims as a normalized SM vector [B, D] (other dims 0)."""
-        spec = self.config.spec
-        out = None
-        for feature, pairs in spec.sensed_features.items():
-            if feature not in batch:
-                raise KeyError(f"the CNMP feeds back {feature!r}: the observation needs it; it has {sorted(batch)}")
-            x = batch[feature]
-            x = x.reshape(x.shape[0], -1) if x.ndim != 2 else x
-            top = self._index_cache.get(("top", feature))
-            if top is None:
-                top = self._index_cache[("top", feature)] = max(k for _, k in pairs)
-            if x.shape[-1] <= top:
-                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM reads dim {top} "
-                                 f"of it (the checkpoint's SM does not match this env/robot)")
-            if spec.tied and x.shape[-1] != spec.size:
-                raise ValueError(f"{feature!r} has {x.shape[-1]} dims, the SM has {spec.size}")
-            if len(spec.sensed_features) == 1 and x.shape[-1] == spec.size and self._identity(feature):
-                out = x.float()  # the feature is the SM itself, dim for dim
-                check_finite(feature, out)
-                break
-            if out is None:
-                out = torch.zeros(x.shape[0], spec.size, dtype=torch.float32, device=x.device)
-            key = (feature, x.device)
-            if key not in self._index_cache:  # (SM index, feature index) tensors, built once per device
-                self._index_cache[key] = (torch.tensor([i for i, _ in pairs], device=x.device),
-                                          torch.tensor([k for _, k in pairs], device=x.device))
-            idx, src = self._index_cache[key]
-            vals = x[:, src].float()
-            check_finite(feature, vals)
-            out[:, idx] = vals
-        if out is None:
-            return None
-        if spec.origins:  # task frames: minus the γ this episode started with
-            if self.origin is None or self.origin.shape[0] != out.shape[0]:
-                gamma = self.policy.task_params(batch)
-                sm_idx, g_idx = zip(*spec.origins, strict=True)
-                self.origin = torch.zeros_like(out)
-                self.origin[:, list(sm_idx)] = gamma[:, list(g_idx)].to(out)
-            out = out - self.origin
-        full = self.policy.normalizer.sm(out)
-        if spec.tied:  # every SM dim is sensed
-            return full
-        return full * self.dims_mask(full[0], spec.sensed)
-
-    def _identity(self, feature: str) -> bool:
-        """Whether ``feature``'s dim k is SM dim k for every SM dim (a state that is the SM)."""
-        key = ("identity", feature)
-        if key not in self._index_cache:
-            pairs = self.config.spec.sensed_features[feature]
-            self._index_cache[key] = sorted(pairs) == [(i, i) for i in range(self.config.spec.size)]
-        return self._index_cache[key]
 
     # ---- context and prediction -----------------------------------------------------------------------------
 
@@ -415,23 +196,23 @@ class CNMPExecutor:
         """Conditions from ``environment_state`` slots, the user's conditions, the sensed dims at the first step
         at t = 0, (with ``online_feedback``) the current sensed dims (at τ, or τ - Δ in the tied layout), and
         ``extra`` points (phase [B, K], values [B, K, D], mask [B, K, D]; RTC's leftover actions)."""
-        c, e = self.config, self.settings
-        self.policy.normalizer.require()
-        need_state = (e.online_feedback or e.condition_on_start) and bool(c.spec.sensed)
+        spec, e, points = self.spec, self.settings, self.points
+        self.normalizer.require()
+        need_state = (e.online_feedback or e.condition_on_start) and bool(spec.sensed)
         if need_state and sensed is None:
             sensed = self.sensed_sm(batch)
         groups = []  # the points that stay while the episode runs: slots, the user's conditions, the start
-        if c.env_condition_slots and OBS_ENV_STATE in batch:
-            groups.append(self.condition_slots(batch))
-        user = self._user_context(phase.shape[0], phase.device)
+        if self.movement.env_condition_slots and OBS_ENV_STATE in batch:
+            groups.append(points.slot_points(batch[OBS_ENV_STATE]))
+        user = points.user_points(phase.shape[0], phase.device)
         if user is not None:
             groups.append(user)
         if e.condition_on_start and need_state:
-            groups.append(self._start_point(sensed))
-        static, static_covers_every_env = self._static_points(groups)
+            groups.append(points.start_point(sensed, self.dims_mask(sensed[0], None if spec.tied else spec.sensed)))
+        static, static_covers_every_env = points.static(groups)
         dynamic = []
         if e.online_feedback and need_state:
-            at = (phase - self.phase_step).clamp(min=0.0) if c.spec.tied else phase
+            at = (phase - self.phase_step).clamp(min=0.0) if spec.tied else phase
             # at phase 0 the sensed state is the start itself: a second copy would double its weight in the
             # mean aggregation and pull the plan away from the other conditions
             fresh = at > 0 if e.condition_on_start else torch.ones_like(phase, dtype=torch.bool)
@@ -448,42 +229,15 @@ class CNMPExecutor:
         if not static_covers_every_env and not bool(valid.any(dim=1).all()):
             raise ValueError("an env in the batch has no condition to condition on (empty context)")
         if not self.has_inputs:
-            self.inputs, self.has_inputs = self.policy.episode_inputs(batch), True
+            self.inputs, self.has_inputs = self.episode_inputs(batch), True
         return Context(pha, val, msk, valid, self.inputs)
-
-    def _start_point(self, sensed: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The sensed SM at the episode's first step as a context point at t = 0 (kept for the episode)."""
-        if self.start is None or self.start.shape[0] != sensed.shape[0]:
-            self.start = sensed.clone()
-        cached = self._start_cache
-        if cached is None or cached[0] is not self.start:
-            start = self.start
-            mask = self.dims_mask(start[0], None if self.config.spec.tied else self.config.spec.sensed)
-            n = start.shape[0]
-            group = (torch.zeros(n, 1, device=start.device), start[:, None, :], mask.expand_as(start)[:, None, :],
-                     torch.ones(n, 1, dtype=torch.bool, device=start.device))
-            self._start_cache = cached = (start, group)
-        return cached[1]
-
-    def _static_points(self, groups: list[tuple]) -> tuple[tuple | None, bool]:
-        """(the groups concatenated, whether every env has a valid point among them), rebuilt only when one of
-        the groups is a new object (each group is itself cached while its source is unchanged); (None, False)
-        without groups."""
-        if not groups:
-            return None, False
-        cached = self._static_cache
-        if cached is None or len(cached[0]) != len(groups) or any(a is not b for a, b in zip(cached[0], groups)):
-            joined = tuple(torch.cat(x, 1) if len(groups) > 1 else x[0] for x in zip(*groups, strict=True))
-            self._static_cache = cached = (list(groups), joined, bool(joined[3].any(dim=1).all()))
-        return cached[1], cached[2]
 
     def predict(self, context: Context, queries: Tensor) -> tuple[Tensor, Tensor]:
         """(μ, σ) of the SM at ``queries`` [B, M] given ``context`` (normalized units), [B, M, D] each. The one
         place execution calls the network."""
-        model = self.policy.model
-        if not isinstance(model, MixtureCNMP):
-            return self.policy.network()(context, queries)
-        means, stds, probs = model.mixture(context, queries)
+        if self.modes is None:
+            return self.network()(context, queries)
+        means, stds, probs = self.network().mixture(context, queries)
         return pick_expert(means, stds, self.modes(probs))
 
     # ---- the loop's pieces ----------------------------------------------------------------------------------
@@ -491,62 +245,43 @@ class CNMPExecutor:
     def tracking_error(self, sensed: Tensor) -> Tensor:
         """Per env, max over the tracked dims (``tracking_dims``, else the fed-back ones) of |sensed SM - SM
         expected now| (tied: the SM commanded at the previous step), in ``phase_stop_units``."""
-        spec, e = self.config.spec, self.settings
-        ref = self.target if spec.tied else self.expected
+        e = self.settings
+        ref = self.target if self.spec.tied else self.expected
         if ref is None:
             return torch.zeros(sensed.shape[0], device=sensed.device, dtype=sensed.dtype)
         dims = e.tracking_dims if e.tracking_dims is not None else e.feedback_dims
         mask = self.dims_mask(sensed, dims) if dims is not None else self.feedback_mask(sensed)
-        err = (sensed - ref).abs()
-        if e.phase_stop_units == "sigma" and self.reference_std is not None:
-            err = err / self.reference_std
-        return (err * mask).amax(dim=-1)
+        return feedback.tracking_error(sensed, ref, self.reference_std, mask, e.phase_stop_units)
 
     def pd_gains(self, std: Tensor) -> tuple[Tensor, Tensor]:
-        """(kp, kd) per env and SM dim: kp constant or scaled by sigma_ref / σ within [kp_min, kp_max]; outside
-        ``pd_dims`` kp = 1 and kd = 0 (the prediction itself is commanded)."""
-        e = self.settings
-        kp = torch.full_like(std, e.pd_kp) if not e.sigma_scaled_gains else (e.pd_kp * e.sigma_ref / std).clamp(
-            e.kp_min, e.kp_max)
-        kd = torch.full_like(std, e.pd_kd)
-        if e.pd_dims is not None:
-            on = self.dims_mask(std, e.pd_dims)
-            kp, kd = on * kp + (1 - on), on * kd
-        return kp, kd
+        """(kp, kd) per env and SM dim (:func:`lerobot_cnmp.execution.feedback.pd_gains`)."""
+        pd_dims = self.settings.pd_dims
+        return feedback.pd_gains(std, self.settings, None if pd_dims is None else self.dims_mask(std, pd_dims))
 
     def advance(self, sensed: Tensor | None) -> None:
         """Move τ one step on, except where the tracking error holds it (up to the timeout)."""
         e = self.settings
         if self.target is None and self.expected is None:  # the first step of an episode is at τ = 0
             return
-        advance = None  # every env advances
+        ok = None  # every env advances
         if e.online_feedback and e.phase_stop_threshold is not None and sensed is not None:
             ok = self.tracking_error(sensed) <= e.phase_stop_threshold
-            if bool(ok.all()):  # the common case, in fewer ops: nothing held
-                self.held_steps = torch.zeros_like(self.held_steps)
-            else:
-                self.held_steps = (self.held_steps + 1) * ~ok
-                advance = ok
-                if e.phase_stop_timeout_s is not None:
-                    limit = max(1, math.ceil(e.phase_stop_timeout_s * self.control_fps))
-                    forced = self.held_steps > limit
-                    if bool(forced.any()) and not self.timed_out:
-                        self.timed_out = True
-                        logger.warning(
-                            "CNMP: the tracking error has held the phase for more than %.2f s (phase_stop_timeout_s) "
-                            "in env(s) %s; the phase advances again (is the robot blocked?)",
-                            e.phase_stop_timeout_s, torch.nonzero(forced).flatten().tolist())
-                    advance = advance | forced
-        moved = (self.phase + self.phase_step).clamp(max=1.0)
-        self.phase = moved if advance is None else torch.where(advance, moved, self.phase)
+        limit = feedback.hold_limit_steps(e, self.control_fps)
+        self.phase, self.held_steps, forced = feedback.advance_phase(self.phase, self.phase_step, ok,
+                                                                     self.held_steps, limit)
+        if forced is not None and bool(forced.any()) and not self.timed_out:
+            self.timed_out = True
+            logger.warning(
+                "CNMP: the tracking error has held the phase for more than %.2f s (phase_stop_timeout_s) "
+                "in env(s) %s; the phase advances again (is the robot blocked?)",
+                e.phase_stop_timeout_s, torch.nonzero(forced).flatten().tolist())
 
     # ---- LeRobot's calls ------------------------------------------------------------------------------------
 
     @torch.no_grad()
     def step(self, batch: dict[str, Tensor]) -> Tensor:
         """One step of the loop for every env of the batch: the action [B, A] in the dataset's units."""
-        c, e = self.config, self.settings
-        spec, norm = c.spec, self.policy.normalizer
+        e, spec, norm = self.settings, self.spec, self.normalizer
         self._ensure_state(batch)
         norm.require()
         sensed = self.sensed_sm(batch) if spec.sensed else None
@@ -557,11 +292,8 @@ class CNMPExecutor:
             target, std = mean[:, 0], std[:, 0]
             action = target
             if e.online_feedback and sensed is not None:
-                error = target - sensed
-                previous = self.error if self.error is not None else error
                 kp, kd = self.pd_gains(std)
-                action = sensed + kp * error + kd * (error - previous)
-                self.error = error
+                action, self.error = feedback.pd_command(sensed, target, self.error, kp, kd)
             self.target, self.reference_std = target, std
             self.last_std = std * norm.sm_std
             return norm.sm_inverse(action)
@@ -605,8 +337,7 @@ class CNMPExecutor:
         """The planned actions and their σ [B, n, A] (dataset units) at τ, τ + Δ, ... (see the module doc).
         ``timestep``: the caller's index of the control step the observation was taken at (LeRobot's async
         client numbers its observations); the chunk then starts at that step's phase in the previous plan."""
-        c, e = self.config, self.settings
-        spec, norm = c.spec, self.policy.normalizer
+        e, spec, norm = self.settings, self.spec, self.normalizer
         n_steps = int(n_steps or e.n_action_steps)
         self._ensure_state(batch)
         norm.require()
@@ -653,11 +384,3 @@ class CNMPExecutor:
         self.last_chunk = mean
         self.last_std = sigma
         return actions, sigma
-
-
-def check_finite(name: str, x: Tensor) -> None:
-    # one reduction instead of isfinite + all: a NaN or ±inf anywhere makes the sum non-finite (so would values
-    # near float32's limit, which no robot sends)
-    if not math.isfinite(float(x.sum())):
-        raise ValueError(f"{name} contains NaN or infinite values")
-

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from lerobot_cnmp.execution.executor import check_finite
+from lerobot_cnmp.execution.sensing import check_finite
 
 
 def join(parts: list[Tensor]) -> Tensor | None:

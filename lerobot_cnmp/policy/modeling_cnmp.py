@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot_cnmp.data.bank import EpisodeBank
 from lerobot_cnmp.execution.executor import CNMPExecutor
+from lerobot_cnmp.execution.modes import ModeSelector
 from lerobot_cnmp.model.cnmp import CNMP, Context, ConvEncoder, Episodes, Targets
 from lerobot_cnmp.model.mixture import MixtureCNMP
 from lerobot_cnmp.model.normalizer import SMNormalizer
@@ -39,6 +40,17 @@ def _network_from_config(config: CNMPConfig) -> CNMP:
         model.dim_weights = weights
     return model
 
+
+
+def _executor_for(policy: "CNMPPolicy") -> CNMPExecutor:
+    """The execution loop of a policy, given its collaborators (the network, the normalizer, the SM spec, the
+    execution settings), not the policy itself."""
+    c = policy.config
+    return CNMPExecutor(
+        policy.network, policy.normalizer, c.spec, c.execution, c, policy.episode_inputs, policy.task_params,
+        modes=ModeSelector(c.mode_switch_margin, c.expert_selection) if c.n_experts > 1 else None,
+        conditions=c.conditions,
+        feature_widths={k: ft.shape[0] for k, ft in c.input_features.items() if len(ft.shape) == 1})
 
 class CNMPPolicy(PreTrainedPolicy):
     """CNMP as a LeRobot policy.
@@ -85,7 +97,7 @@ class CNMPPolicy(PreTrainedPolicy):
         if dataset_meta is not None:
             self.set_dataset(dataset_meta)
         self._numpy_twin = NumpyTwin()  # execution copy of self.model, see network()
-        self.executor = CNMPExecutor(self)  # the execution loop and its state (validates the user's conditions)
+        self.executor = _executor_for(self)  # the execution loop and its state (validates the user's conditions)
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
