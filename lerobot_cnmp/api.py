@@ -21,36 +21,13 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.bank import EpisodeBank
+from lerobot_cnmp.data.demos import pad_demos
 from lerobot_cnmp.execution.conditions import Condition, layout_size
-from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS, CNMPConfig
+from lerobot_cnmp.data.sm_spec import TASK_PARAMS
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy, Context
 
 __all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos", "sm_stats"]
-
-
-def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Demonstrations ``[N, T, D]`` or a list of ``[T_i, D]`` -> (values, valid, phase), padded to max T."""
-    seqs = [np.asarray(d, dtype=np.float32) for d in (demos if isinstance(demos, (list, tuple)) else list(demos))]
-    if not seqs:
-        raise ValueError("no demonstrations given")
-    for i, s in enumerate(seqs):
-        if s.ndim != 2:
-            raise ValueError(f"demonstration {i} must be [T, D] (frames, SM dims); got shape {s.shape}")
-        if s.shape[0] < 2:
-            raise ValueError(f"demonstration {i} has {s.shape[0]} frame(s); at least 2 define a phase")
-        if not np.isfinite(s).all():
-            raise ValueError(f"demonstration {i} contains NaN or infinite values")
-    dims = {s.shape[1] for s in seqs}
-    if len(dims) != 1:
-        raise ValueError(f"demonstrations disagree on the SM dimension: {sorted(dims)}")
-    t_max, d = max(s.shape[0] for s in seqs), dims.pop()
-    values = np.zeros((len(seqs), t_max, d), dtype=np.float32)
-    valid = np.zeros((len(seqs), t_max), dtype=bool)
-    phase = np.zeros((len(seqs), t_max), dtype=np.float32)
-    for i, s in enumerate(seqs):
-        values[i, : len(s)], valid[i, : len(s)] = s, True
-        phase[i, : len(s)] = np.arange(len(s)) / (len(s) - 1)
-    return values, valid, phase
 
 
 class CNMPModel:

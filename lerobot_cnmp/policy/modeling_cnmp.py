@@ -833,7 +833,7 @@ class CNMPPolicy(PreTrainedPolicy):
                             dataset_meta=None, eval_info: dict | None = None, repo_id: str | None = None):
         """The model card (``lerobot-train --policy.push_to_hub=true``, ``lerobot-cnmp-push``):
         :func:`lerobot_cnmp.hub.model_card`."""
-        from lerobot_cnmp.hub import model_card
+        from lerobot_cnmp.policy.card import model_card
 
         return model_card(self.config, dataset_repo_id, license=license, tags=tags, cfg=cfg, eval_info=eval_info,
                           repo_id=repo_id)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_cnmp.api import pad_demos
+from lerobot_cnmp.data.demos import pad_demos
 from lerobot_cnmp.execution.conditions import Condition
 
 FREE_DIM_VARIANCE = 1e6
