@@ -22,9 +22,9 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.bank import EpisodeBank
-from lerobot_cnmp.data.demos import pad_demos
-from lerobot_cnmp.execution.conditions import Condition, layout_size
+from lerobot_cnmp.data.demos import pad_demos, query_phases
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
+from lerobot_cnmp.execution.conditions import Condition, layout_size
 from lerobot_cnmp.policy.checkpoint import check_weights_file
 from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy, Context
@@ -206,10 +206,7 @@ class CNMPModel:
         return Context(t(ph), t(vals), t(mask), torch.ones(ph.shape, dtype=torch.bool, device=self.device), gamma)
 
     def _query(self, phases) -> torch.Tensor:
-        q = np.asarray(phases, dtype=np.float32).reshape(-1)
-        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
-            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
-        return torch.from_numpy(q[None]).to(self.device)
+        return torch.from_numpy(query_phases(phases, np.float32)[None]).to(self.device)
 
     @torch.no_grad()
     def predict(self, phases, conditions: list[Condition], task_params=None, expert: int | None = None

@@ -34,6 +34,14 @@ def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return values, valid, phase
 
 
+def query_phases(phases, dtype=np.float64) -> np.ndarray:
+    """The phases a prediction is asked at, as a flat array of ``dtype``: non-empty, finite, in [0, 1]."""
+    q = np.asarray(phases, dtype=dtype).reshape(-1)
+    if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
+        raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+    return q
+
+
 def load_demos(root: str | Path, repo_id: str | None = None) -> dict:
     """Every episode's ``action`` sequence (the SM trajectory) from a local LeRobotDataset.
 
