@@ -11,6 +11,7 @@ Training goes through ``CNMPPolicy.forward`` -- the same loss and sampler as ``l
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -21,38 +22,15 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.bank import EpisodeBank
+from lerobot_cnmp.data.demos import pad_demos, query_phases
+from lerobot_cnmp.data.sm_spec import TASK_PARAMS
 from lerobot_cnmp.execution.conditions import Condition, check_conditions, layout_size
-from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS, CNMPConfig
 from lerobot_cnmp.model.cnmp import Context
 from lerobot_cnmp.model.mixture import mixture_of, n_experts
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
 
 __all__ = ["CNMPModel", "Condition", "load_pretrained", "pad_demos", "sm_stats"]
-
-
-def pad_demos(demos) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Demonstrations ``[N, T, D]`` or a list of ``[T_i, D]`` -> (values, valid, phase), padded to max T."""
-    seqs = [np.asarray(d, dtype=np.float32) for d in (demos if isinstance(demos, (list, tuple)) else list(demos))]
-    if not seqs:
-        raise ValueError("no demonstrations given")
-    for i, s in enumerate(seqs):
-        if s.ndim != 2:
-            raise ValueError(f"demonstration {i} must be [T, D] (frames, SM dims); got shape {s.shape}")
-        if s.shape[0] < 2:
-            raise ValueError(f"demonstration {i} has {s.shape[0]} frame(s); at least 2 define a phase")
-        if not np.isfinite(s).all():
-            raise ValueError(f"demonstration {i} contains NaN or infinite values")
-    dims = {s.shape[1] for s in seqs}
-    if len(dims) != 1:
-        raise ValueError(f"demonstrations disagree on the SM dimension: {sorted(dims)}")
-    t_max, d = max(s.shape[0] for s in seqs), dims.pop()
-    values = np.zeros((len(seqs), t_max, d), dtype=np.float32)
-    valid = np.zeros((len(seqs), t_max), dtype=bool)
-    phase = np.zeros((len(seqs), t_max), dtype=np.float32)
-    for i, s in enumerate(seqs):
-        values[i, : len(s)], valid[i, : len(s)] = s, True
-        phase[i, : len(s)] = np.arange(len(s)) / (len(s) - 1)
-    return values, valid, phase
 
 
 class CNMPModel:
@@ -129,12 +107,13 @@ class CNMPModel:
             raise ValueError(
                 f"steps, batch_size and callback_every must be >= 1; got {steps}, {batch_size}, {callback_every}"
             )
+        task_dim = 0 if gamma is None else gamma.shape[1]
+        if self.policy is not None:
+            self._check_refit(d, task_dim)
         bank = EpisodeBank.from_arrays(seqs, gamma, fps)
         torch.manual_seed(seed)  # before the network is built: a new model's initialization follows the seed too
         if self.policy is None:
-            self._build(d, 0 if gamma is None else gamma.shape[1])
-        elif d != self.config.sm_dim:
-            raise ValueError(f"demos have SM dimension {d}, the model has {self.config.sm_dim}")
+            self._build(d, task_dim)
         self.policy.set_bank(bank, fps)
         gen = torch.Generator(device="cpu").manual_seed(seed)
         torch.manual_seed(seed)
@@ -168,6 +147,21 @@ class CNMPModel:
         policy.eval()
         return self
 
+    def _check_refit(self, sm_dim: int, task_dim: int) -> None:
+        """A re-fit trains the same network further: the demos' SM and γ sizes must be the ones it was built for."""
+        if sm_dim != self.config.sm_dim:
+            raise ValueError(f"demos have SM dimension {sm_dim}, the model has {self.config.sm_dim}")
+        had = self.config.task_dim
+        if task_dim == had:
+            return
+        if not had:
+            raise ValueError(f"this model was fitted without task parameters γ; a re-fit cannot add {task_dim} (the "
+                             "network's input size is fixed): fit a new CNMPModel with task_params")
+        if not task_dim:
+            raise ValueError(f"this model was fitted with {had} task parameters γ; give task_params [N, {had}] to "
+                             "fit it again, or fit a new CNMPModel without them")
+        raise ValueError(f"task_params have {task_dim} columns; this model was fitted with {had} task parameters γ")
+
     # ---- prediction -----------------------------------------------------------------------------------
 
     def _norm_task(self, gamma: np.ndarray) -> np.ndarray:
@@ -189,6 +183,9 @@ class CNMPModel:
         raw = np.array([[c.values for c in conditions]], np.float32)
         vals = np.nan_to_num((raw - self.sm_mean) / self.sm_std) * mask
         gamma = None
+        if not self.config.task_dim and task_params is not None:
+            raise ValueError("this model has no task parameters γ (it was fitted without task_params): drop "
+                             "task_params, or fit a new CNMPModel with them")
         if self.config.task_dim:
             if task_params is None:
                 raise ValueError(f"this model is conditioned on {self.config.task_dim} task parameters γ; give task_params")
@@ -200,10 +197,7 @@ class CNMPModel:
         return Context(t(ph), t(vals), t(mask), torch.ones(ph.shape, dtype=torch.bool, device=self.device), gamma)
 
     def _query(self, phases) -> torch.Tensor:
-        q = np.asarray(phases, dtype=np.float32).reshape(-1)
-        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
-            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
-        return torch.from_numpy(q[None]).to(self.device)
+        return torch.from_numpy(query_phases(phases, np.float32)[None]).to(self.device)
 
     @torch.no_grad()
     def predict(self, phases, conditions: list[Condition], task_params=None, expert: int | None = None
@@ -269,6 +263,36 @@ def sm_stats(policy) -> dict:
     return out
 
 
+def _check_local_checkpoint(path: str) -> None:
+    """A local checkpoint folder holds a CNMP ``config.json`` and a whole ``model.safetensors``; a path that
+    does not exist must be a Hub repo id. Each failure is an error naming the path."""
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
+    folder = Path(path)
+    if not folder.exists():
+        try:
+            validate_repo_id(path)
+        except HFValidationError:
+            raise FileNotFoundError(f"no checkpoint at {path}: the folder does not exist (and {path!r} is not a "
+                                    "Hub repo id either)") from None
+        return  # a Hub repo id: from_pretrained fetches it
+    cfg_file = folder / "config.json"
+    if not cfg_file.is_file():
+        hint = folder / "pretrained_model"
+        more = f" (did you mean {hint}?)" if (hint / "config.json").is_file() else ""
+        raise FileNotFoundError(f"no config.json in {path}: not a CNMP checkpoint folder{more}")
+    try:
+        kind = json.loads(cfg_file.read_text()).get("type")
+    except (ValueError, AttributeError) as e:
+        raise ValueError(f"{cfg_file} is not a JSON object ({e}): the checkpoint's config is damaged") from e
+    if kind != "cnmp":
+        raise ValueError(f"the checkpoint at {path} is a {kind!r} policy, not a 'cnmp' one")
+    weights = folder / "model.safetensors"
+    if not weights.is_file():
+        raise FileNotFoundError(f"no model.safetensors in {path}: the checkpoint has no weights")
+
+
 def load_pretrained(path: str | Path, device: str | None = None):
     """(policy, preprocessor, postprocessor) from a checkpoint folder or Hub repo id.
 
@@ -278,17 +302,7 @@ def load_pretrained(path: str | Path, device: str | None = None):
     from lerobot.policies.factory import make_pre_post_processors
 
     path = str(path)
-    if Path(path).exists() and not (Path(path) / "config.json").is_file():
-        hint = Path(path) / "pretrained_model"
-        more = f" (did you mean {hint}?)" if (hint / "config.json").is_file() else ""
-        raise FileNotFoundError(f"no config.json in {path}: not a CNMP checkpoint folder{more}")
-    cfg_file = Path(path) / "config.json"
-    if cfg_file.is_file():
-        import json
-
-        kind = json.loads(cfg_file.read_text()).get("type")
-        if kind != "cnmp":
-            raise ValueError(f"the checkpoint at {path} is a {kind!r} policy, not a 'cnmp' one")
+    _check_local_checkpoint(path)
     try:
         policy = CNMPPolicy.from_pretrained(path)
     except (FileNotFoundError, OSError) as e:

@@ -6,7 +6,7 @@
 
 Datasets go up through ``LeRobotDataset.push_to_hub`` with the recorder's card as the dataset description;
 checkpoints (config, weights, processors with their statistics, the train config when there is one) go up
-as one folder with a model card (:func:`model_card`). Both come back with LeRobot's own
+as one folder with the policy's model card (:mod:`lerobot_cnmp.policy.card`). Both come back with LeRobot's own
 loaders: ``LeRobotDataset(repo_id)`` and ``lerobot_cnmp.api.load_pretrained(repo_id)`` (or
 ``--policy.path=repo_id``).
 """
@@ -47,75 +47,6 @@ def _network_errors() -> tuple[type[BaseException], ...]:
 def card_body(readme: str) -> str:
     """A card's markdown without its YAML front matter."""
     return re.sub(r"\A---\n.*?\n---\n", "", readme, count=1, flags=re.S).strip()
-
-
-def model_card(config, dataset_repo_id, license=None, tags=None, cfg=None, eval_info: dict | None = None,
-               repo_id: str | None = None):
-    """The model card of a CNMP checkpoint (used by ``lerobot-train --policy.push_to_hub=true`` through
-    ``CNMPPolicy.generate_model_card``, and by :func:`push_checkpoint`): what it is, what it was trained on,
-    its settings, its evaluation figures when given, and how to run it. Built offline (no Hub validation)."""
-    from huggingface_hub import ModelCard, ModelCardData
-
-    c = config
-    repo_id = repo_id or getattr(c, "repo_id", None) or "<repo_id>"
-    dataset_repo_id = dataset_repo_id or (cfg.dataset.repo_id if cfg is not None else None)
-    data = ModelCardData(
-        license=license or c.license or "apache-2.0", library_name="lerobot", pipeline_tag="robotics",
-        tags=sorted({"robotics", "lerobot", "cnmp", "movement-primitives", *(tags or c.tags or [])}),
-        datasets=dataset_repo_id, model_name="cnmp",
-    )
-    inputs = ", ".join(f"`{k}` {list(v.shape)}" for k, v in c.input_features.items())
-    trained = f"[{dataset_repo_id}](https://huggingface.co/datasets/{dataset_repo_id})" if dataset_repo_id else "(not recorded)"
-    steps = f", {cfg.steps} steps of batch {cfg.batch_size}" if cfg is not None else ""
-    groups = list((eval_info or {}).get("per_group", {}))  # lerobot-eval's eval_info names the env
-    env_type = groups[0] if groups else "<env type, e.g. cnmp_obstacle2d>"
-    images = ""
-    if c.image_keys:
-        images = (f"\n- Images ({', '.join(f'`{k}`' for k in c.image_keys)}) through a conv encoder: 3x3 conv + 2x2 "
-                  f"max-pool per width in {list(c.image_channels)}, embedding {c.image_embed_dim} per image.")
-    # the in-memory API (CNMPModel) takes SM trajectories only: image checkpoints run as a policy
-    imports = "load_pretrained" if c.image_keys else "CNMPModel, load_pretrained"
-    api = ("" if c.image_keys else
-           f'\nmodel = CNMPModel.load("{repo_id}")                                   # or the in-memory API')
-    results = "No evaluation figures were attached to this card."
-    if eval_info:
-        overall = eval_info.get("overall", eval_info)
-        results = (f"`lerobot-eval`: **pc_success {overall.get('pc_success')}** over "
-                   f"{overall.get('n_episodes')} episodes.")
-    body = f"""# CNMP policy `{repo_id}`
-
-A Conditional Neural Movement Primitive (Seker, Imre, Piater, Ugur, RSS 2019) trained with the
-lerobot-cnmp plugin as a LeRobot policy (`--policy.type=cnmp`): an encoder over
-observed (phase, SM) points, mean aggregation and a Gaussian query network predict the sensorimotor (SM)
-trajectory given any subset of SM points and task parameters γ; executed online with re-conditioning on
-the sensed state, PD tracking and phase stopping.
-
-## Training
-
-- Data: {trained}{steps}.
-- SM: {c.sm_dim} dims ({', '.join(c.sm_names or [])}); inputs: {inputs}; task parameters γ: {c.task_dim} dims.
-- Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},
-  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features {c.phase_frequencies}.{images}
-- Every setting is in `config.json`; the SM and γ normalization statistics are in `model.safetensors`
-  (`normalizer.*`), and the processors pass CNMP's features through.
-
-## Evaluation
-
-{results}
-
-## Use
-
-```bash
-pip install -e .   # in a lerobot-cnmp checkout: registers --policy.type=cnmp and its sims
-lerobot-eval --policy.path={repo_id} --env.type={env_type} --eval.n_episodes=50 --policy.device=cpu
-```
-
-```python
-from lerobot_cnmp.api import {imports}
-policy, preprocessor, postprocessor = load_pretrained("{repo_id}")   # weights carry the normalization{api}
-```
-"""
-    return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")
 
 
 def push_dataset(root: str | Path, repo_id: str, private: bool = False) -> str:

@@ -24,11 +24,11 @@ FPS = 30
 DEMO_STEPS = 45  # the scripted leader's reach (SO101ScriptedTeleopConfig.episode_steps), 1.5 s at FPS
 EPISODE_S = 6.0
 """The rollout's wall-clock length: the reach (1.5 s of control steps) and then the hold at the goal (the phase
-stays at 1), with room for a machine that runs the 30 Hz loop slower (a CI run on 2026-12-02 at 2.5 s reached
-only the reach's first steps: the final state was still at home)."""
+stays at 1), with room for a machine that runs the 30 Hz loop slower (with 2.5 s a slow CI machine ran only the
+reach's first steps: the final state was still at home)."""
 GOAL_TOL_DEG = 10.0
-"""How close the final shoulder_pan must come to the goal (the demos' goals span [-40, 40] deg). Measured
-2026-12-02: goal 25 -> 31.7, goal -30 -> -35.4 (the CNMP overshoots a pan-only goal by 5-7 deg)."""
+"""How close the final shoulder_pan must come to the goal (the demos' goals span [-40, 40] deg; the CNMP
+overshoots a pan-only goal by 5-7 deg, e.g. goal 25 -> 31.7, goal -30 -> -35.4)."""
 
 
 def _env() -> dict:

@@ -65,6 +65,17 @@ def test_save_and_load_give_the_same_actions(pickplace_policy, tmp_path):
         torch.testing.assert_close(loaded.select_action(batch), policy.select_action(batch))
 
 
+def test_a_truncated_weights_file_is_named(pickplace_policy, tmp_path):
+    from lerobot_cnmp.policy.checkpoint import CorruptCheckpointError
+
+    policy, _ = pickplace_policy
+    policy.save_pretrained(tmp_path)
+    weights = tmp_path / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:100])
+    with pytest.raises(CorruptCheckpointError, match=f"{weights} is truncated or corrupt"):
+        ProMPPolicy.from_pretrained(tmp_path)
+
+
 def test_conditions_mode_passes_through_the_environment_state_points():
     policy, info = fit(OBSTACLE, list(range(8)), "conditions")
     d = info["action_dim"]

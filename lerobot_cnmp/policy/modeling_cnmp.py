@@ -11,6 +11,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot_cnmp.data.bank import EpisodeBank
 from lerobot_cnmp.execution.executor import CNMPExecutor
 from lerobot_cnmp.execution.modes import ModeSelector
+from lerobot_cnmp.policy.checkpoint import check_weights_file
 from lerobot_cnmp.model.cnmp import CNMP, Context, ConvEncoder, Episodes, Targets
 from lerobot_cnmp.model.mixture import MixtureCNMP
 from lerobot_cnmp.model.normalizer import SMNormalizer
@@ -102,7 +103,8 @@ class CNMPPolicy(PreTrainedPolicy):
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
         """Load weights strictly: a checkpoint of another CNMP configuration is an error, not a silent
-        partial load."""
+        partial load; a truncated or corrupt weights file is named as such."""
+        check_weights_file(model_file)
         try:
             return super()._load_as_safetensor(model, model_file, map_location, strict=True)
         except RuntimeError as e:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_cnmp.api import pad_demos
+from lerobot_cnmp.data.demos import pad_demos, query_phases
 from lerobot_cnmp.execution.conditions import Condition
 
 FREE_DIM_VARIANCE = 1e6
@@ -131,9 +131,7 @@ class ProMPBaseline:
         return promp
 
     def predict(self, phases, conditions: list[Condition], task_params=None) -> tuple[np.ndarray, np.ndarray]:
-        q = np.asarray(phases, dtype=float).reshape(-1)
-        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
-            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+        q = query_phases(phases)
         promp = self.conditioned(conditions, task_params)
         # The library rescales the query times by their maximum (T / max T), so it is always evaluated on
         # the whole [0, 1] grid and interpolated at the requested phases.
@@ -181,9 +179,7 @@ class DMPBaseline:
     def predict(self, phases, conditions: list[Condition]) -> tuple[np.ndarray, np.ndarray]:
         if self.dmp is None:
             raise RuntimeError("the baseline is not fitted: call fit(demos) first")
-        q = np.asarray(phases, dtype=float).reshape(-1)
-        if q.size == 0 or not np.isfinite(q).all() or q.min() < 0 or q.max() > 1:
-            raise ValueError("query phases must be a non-empty set of finite values in [0, 1]")
+        q = query_phases(phases)
         if not self.applies(conditions):
             raise ValueError(
                 "a DMP is conditioned only on its start (phase 0) and goal (phase 1), on all SM dims; got "

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig
 
-from lerobot_cnmp.policy.configuration_cnmp import identity_normalization
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
+from lerobot_cnmp.policy.configuration_cnmp import identity_normalization
 
 PROMP_CONDITIONING = ("none", "task_params", "conditions")
 

@@ -39,9 +39,13 @@ def parse_episodes(text: str | None) -> list[int] | None:
 def fit(dataset_root: str | Path, episodes: list[int] | None, conditioning: str, n_weights_per_dim: int = 31,
         schedule_steps: int | None = None):
     """The fitted ``ProMPPolicy`` and a summary dict (episodes, fit seconds, schedule)."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.utils.constants import OBS_ENV_STATE
+
+    from lerobot_cnmp.data.demos import load_demos
+    from lerobot_cnmp.data.sm_spec import TASK_PARAMS
     from lerobot_cnmp.promp.baselines import ProMPBaseline
     from lerobot_cnmp.promp.configuration_promp import PROMP_CONDITIONING, ProMPConfig
-    from lerobot_cnmp.data.demos import load_demos
     from lerobot_cnmp.promp.modeling_promp import ProMPPolicy
 
     if conditioning not in PROMP_CONDITIONING:
@@ -68,15 +72,12 @@ def fit(dataset_root: str | Path, episodes: list[int] | None, conditioning: str,
     baseline = ProMPBaseline(n_weights_per_dim=n_weights_per_dim).fit(demos, task_params=gamma)
     fit_s = time.perf_counter() - t0
     steps = int(schedule_steps or np.median([len(d) for d in demos]))
-    from lerobot.configs.types import FeatureType, PolicyFeature
-
     d = demos[0].shape[1]
     inputs = {"observation.state": PolicyFeature(type=FeatureType.STATE, shape=(d,))}
     if gamma is not None:
-        inputs["observation.task_params"] = PolicyFeature(type=FeatureType.ENV, shape=(gamma.shape[1],))
+        inputs[TASK_PARAMS] = PolicyFeature(type=FeatureType.ENV, shape=(gamma.shape[1],))
     if conditioning == "conditions":
-        inputs["observation.environment_state"] = PolicyFeature(type=FeatureType.ENV,
-                                                               shape=(data["env_state"].shape[1],))
+        inputs[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(data["env_state"].shape[1],))
     config = ProMPConfig(conditioning=conditioning, n_weights_per_dim=n_weights_per_dim, schedule_steps=steps,
                          action_dim=d, task_dim=0 if gamma is None else gamma.shape[1], device="cpu",
                          input_features=inputs,

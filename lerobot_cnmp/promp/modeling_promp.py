@@ -16,8 +16,9 @@ from torch import Tensor
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE
 
-from lerobot_cnmp.promp.configuration_promp import ProMPConfig
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
+from lerobot_cnmp.policy.checkpoint import check_weights_file
+from lerobot_cnmp.promp.configuration_promp import ProMPConfig
 
 
 class ProMPPolicy(PreTrainedPolicy):
@@ -57,6 +58,12 @@ class ProMPPolicy(PreTrainedPolicy):
                 raise ValueError(f"{name}: the baseline's shape {arrays[name].shape} is not the config's {tuple(buf.shape)}")
             buf.copy_(torch.from_numpy(arrays[name]))
         return policy
+
+    @classmethod
+    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
+        """LeRobot's loading, after checking that ``model_file`` is a whole safetensors file (named if not)."""
+        check_weights_file(model_file)
+        return super()._load_as_safetensor(model, model_file, map_location, strict)
 
     def baseline(self):
         """The ``ProMPBaseline`` of the buffers (rebuilt once after loading)."""
