@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lerobot_cnmp.api import CNMPModel, Condition, pad_demos
-from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig, MixtureConfig
 from lerobot_cnmp.policy.modeling_cnmp import CNMP, Context, Episodes, NumpyCNMP, Targets, sample_context_and_targets
 
 
@@ -261,8 +261,10 @@ def test_not_a_checkpoint(tmp_path):
      ("control_fps", -1.0), ("sensed_obs_prob", 2.0), ("draws_per_sample", 0), ("phase_frequencies", -1)],
 )
 def test_bad_config_values(field, value):
+    section = {"control_fps": "execution", "n_max_context": "sampling", "partial_obs_prob": "sampling",
+               "sensed_obs_prob": "sampling", "draws_per_sample": "sampling"}.get(field)
     with pytest.raises(ValueError, match=field):
-        CNMPConfig(**{field: value})
+        CNMPConfig(**({section: {field: value}} if section else {field: value}))
 
 
 def test_context_in_targets_puts_observations_among_queries():
@@ -450,7 +452,7 @@ def test_mixture_loss_forms(mixture_net, form):
         nll = -(torch.log((probs * torch.exp(-nll_bk * n[:, None])).sum(-1)) / n).mean()
     h = lambda p: -(p * p.log()).sum(-1)  # noqa: E731
     c_ind, c_batch = mixture_net.gate_entropy_coef, mixture_net.batch_entropy_coef
-    assert (c_ind, c_batch) == (CNMPConfig.gate_entropy_coef, CNMPConfig.batch_entropy_coef) == (0.2, 0.88)
+    assert (c_ind, c_batch) == (MixtureConfig.gate_entropy_coef, MixtureConfig.batch_entropy_coef) == (0.2, 0.88)
     want = nll + c_ind * h(probs).mean() / np.log(3) - c_batch * h(probs.mean(0)) / np.log(3)
     torch.testing.assert_close(loss, want)
     assert info["nll"] == pytest.approx(nll.item(), rel=1e-5)
@@ -538,11 +540,10 @@ def test_unconditional_nll_coef_must_be_positive_and_only_with_assigned():
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
             CNMP(sm_dim=2, n_experts=2, unconditional_nll_coef=bad)
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
-            CNMPConfig(n_experts=2, unconditional_nll_coef=bad)
-    for bad in ({}, {"n_experts": 2, "mixture_nll": "likelihood"}):
-        with pytest.raises(ValueError, match="unconditional_nll_coef weighs"):
-            CNMPConfig(unconditional_nll_coef=0.5, **bad)
-    assert CNMPConfig(n_experts=2, unconditional_nll_coef=0.25).unconditional_nll_coef == 0.25
+            CNMPConfig(n_experts=2, mixture={"unconditional_nll_coef": bad})
+    with pytest.raises(ValueError, match="unconditional_nll_coef=0.5 applies to a mixture, but n_experts is 1"):
+        CNMPConfig(mixture={"unconditional_nll_coef": 0.5})
+    assert CNMPConfig(n_experts=2, mixture={"unconditional_nll_coef": 0.5}).mixture.unconditional_nll_coef == 0.5
 
 
 def test_assignment_draws_must_be_a_count():
@@ -550,13 +551,12 @@ def test_assignment_draws_must_be_a_count():
         CNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
     for bad in (1.5, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
-            CNMPConfig(n_experts=2, assignment_draws=bad)
+            CNMPConfig(n_experts=2, mixture={"assignment_draws": bad})
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
             CNMP(sm_dim=2, n_experts=2, assignment_draws=bad)
-    for bad in ({"n_experts": 1}, {"n_experts": 2, "mixture_nll": "likelihood"}):  # it would do nothing
-        with pytest.raises(ValueError, match="assignment_draws decides"):
-            CNMPConfig(assignment_draws=1, **bad)
-    assert CNMPConfig(n_experts=2, assignment_draws=1).assignment_draws == 1
+    with pytest.raises(ValueError, match="assignment_draws=2 applies to a mixture"):  # it would do nothing
+        CNMPConfig(mixture={"assignment_draws": 2})
+    assert CNMPConfig(n_experts=2, mixture={"assignment_draws": 2}).mixture.assignment_draws == 2
 
 
 def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
@@ -582,7 +582,7 @@ def test_gate_commit_where_decided_weights_each_episodes_entropy_by_how_decided_
     probs = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [0.6, 0.3, 0.1], [0.98, 0.01, 0.01]], requires_grad=True)
     h = -(probs * probs.log()).sum(-1) / np.log(3)
     default, default_nll = mixture_net.gate_commit, mixture_net.mixture_nll
-    assert default == CNMPConfig.gate_commit == "always"
+    assert default == CNMPConfig().gate_commit == "always"
     mixture_net.mixture_nll = "likelihood"  # the commitment term does not depend on the NLL's form
     try:
         _, always = mixture_net.mixture_loss(nll_bk, probs, torch.tensor([4, 4, 4]))
@@ -618,11 +618,10 @@ def test_bad_number_of_experts_is_a_clear_error(k):
 
 
 @pytest.mark.parametrize("field, value", [("gate_entropy_coef", -0.1), ("batch_entropy_coef", -1.0),
-                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0),
-                                          ("mixture_nll", "mse"), ("gate_commit", "sometimes")])
+                                          ("expert_selection", "random"), ("mode_switch_margin", 1.0)])
 def test_bad_mixture_settings(field, value):
     with pytest.raises(ValueError, match=field):
-        CNMPConfig(**{field: value})
+        CNMPConfig(mixture={field: value})
 
 
 def test_numpy_copy_refuses_a_mixture(mixture_net):
@@ -661,7 +660,7 @@ def test_assigned_mixture_gives_each_mode_its_expert_and_shares_at_the_shared_st
     """mixture_nll="assigned" on the two-mode toy: a mid point commits the gate (> 0.9) to the expert of its
     mode, the two modes to different experts; the shared start, which does not name a mode, gets both."""
     torch.manual_seed(0)
-    model = CNMPModel(encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=2, mixture_nll="assigned").fit(
+    model = CNMPModel(encoder_layers=(32, 32), decoder_layers=(32, 32), n_experts=2).fit(
         toy_demos(n=16), steps=800, batch_size=16, progress=False)
     q = np.linspace(0, 1, 50)
     chosen = []
@@ -725,11 +724,11 @@ def test_shared_decoder_layers_and_redundant_gate_commit():
     with pytest.raises(ValueError, match="shared_decoder_layers"):
         CNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
     with pytest.raises(ValueError, match="n_experts is 1"):
-        CNMPConfig(shared_decoder_layers=1)
-    # the default: a mixture shares all hidden layers but the last, K = 1 shares nothing; 0 keeps CNEP's K networks
-    assert CNMPConfig(n_experts=4).shared_decoder_layers == 2 and CNMPConfig().shared_decoder_layers == 0
-    assert CNMPConfig(n_experts=4, decoder_layers=(64,)).shared_decoder_layers == 0
-    assert CNMPConfig(n_experts=4, shared_decoder_layers=0).shared_decoder_layers == 0
+        CNMPConfig(mixture={"shared_decoder_layers": 1})
+    # the default: a mixture shares all hidden layers, K = 1 shares nothing; 0 keeps CNEP's K networks
+    assert CNMPConfig(n_experts=4).mixture.shared_decoder_layers == 3 and CNMPConfig().mixture.shared_decoder_layers == 0
+    assert CNMPConfig(n_experts=4, decoder_layers=(64,)).mixture.shared_decoder_layers == 1
+    assert CNMPConfig(n_experts=4, mixture={"shared_decoder_layers": 0}).mixture.shared_decoder_layers == 0
     red = CNMP(sm_dim=2, n_experts=2, gate_commit="redundant", gate_entropy_coef=1.0, batch_entropy_coef=0.0,
                mixture_nll="likelihood")
     probs, nll = torch.full((1, 2), 0.5), torch.zeros(1, 2)
