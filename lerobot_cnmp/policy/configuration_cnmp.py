@@ -1,19 +1,16 @@
 """Configuration of the CNMP policy (``--policy.type=cnmp``): the model and its training.
 
-Defaults follow the paper (Seker et al., RSS 2019, Sec. III and IV-A) where it gives a value: MLP encoder
-and query (decoder) networks of 128 units, mean aggregation, Gaussian output with a softplus σ, NLL loss,
-1..n_max observations per training sample. Where the original trains with batch 1 and one query per
-step, we batch episodes and queries (``batch_size`` of ``lerobot-train``, ``sampling.m_max_targets``) and
-raise the learning rate accordingly; every such choice is a field here. Settings of one concern are grouped
-in a sub-config, set on the command line as ``--policy.<section>.<field>``: ``sampling``
-(:class:`SamplingConfig`), ``mixture`` (:class:`MixtureConfig`) and ``execution``
-(:class:`~lerobot_cnmp.execution.config.ExecutionConfig`). Configs of older layouts load through
-:func:`lerobot_cnmp.policy.legacy.upgrade_config_dict`.
+Defaults follow the paper (Seker et al., RSS 2019, Sec. III and IV-A) where it gives a value; where the
+original trains with batch 1 and one query per step, we batch episodes and queries and raise the learning rate
+accordingly. Settings of one concern form a section, ``--policy.<section>.<field>``: ``sampling``
+(:class:`SamplingConfig`), ``mixture`` (:class:`MixtureConfig`), ``execution`` (:class:`ExecutionConfig`).
+Configs of older layouts load through :func:`lerobot_cnmp.policy.legacy.upgrade_config_dict`.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
@@ -47,7 +44,7 @@ def _check(ok: bool, message: str) -> None:
 
 def _is_count(x, low: int = 0) -> bool:
     """An integer >= low (bools, NaN and inf are not)."""
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x == int(x) and x >= low
+    return not isinstance(x, bool) and isinstance(x, numbers.Real) and math.isfinite(x) and x == int(x) and x >= low
 
 
 @dataclass
