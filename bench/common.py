@@ -3,6 +3,7 @@ closed-loop helpers (an env observation as the policy's batch, the SM predicted 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -152,30 +153,35 @@ def _matching_config(train_cfg: dict) -> Path | None:
     return None
 
 
-MIXTURE_FIELDS = ("mixture_nll", "assignment_draws", "unconditional_nll_coef", "gate_entropy_coef",
-                  "batch_entropy_coef", "gate_commit", "shared_decoder_layers")
-"""The mixture decoder's settings that a mixture bench takes on the command line and reports: CNMPConfig's
-fields of these names (their types, defaults and allowed values come from CNMPConfig)."""
+def _mixture_fields() -> tuple[str, ...]:
+    from lerobot_cnmp.policy.configuration_cnmp import MixtureConfig
+
+    return tuple(f.name for f in dataclasses.fields(MixtureConfig))
+
+
+MIXTURE_FIELDS = _mixture_fields()
+"""The mixture decoder's settings that a mixture bench takes on the command line and reports: the fields of
+``CNMPConfig.mixture`` (their types, defaults and allowed values come from MixtureConfig)."""
 
 
 def add_mixture_arguments(p) -> None:
     """The :data:`MIXTURE_FIELDS` as a mixture bench's options, each None (the config's) unless given."""
-    from lerobot_cnmp.policy.configuration_cnmp import GATE_COMMIT, MIXTURE_NLL, CNMPConfig
+    from lerobot_cnmp.policy.configuration_cnmp import EXPERT_SELECTION, MixtureConfig
 
-    add_dataclass_arguments(p, CNMPConfig, only=MIXTURE_FIELDS,
-                            choices={"mixture_nll": MIXTURE_NLL, "gate_commit": GATE_COMMIT})
+    add_dataclass_arguments(p, MixtureConfig, only=MIXTURE_FIELDS, choices={"expert_selection": EXPERT_SELECTION})
 
 
 def mixture_settings(args) -> dict:
-    """The :data:`MIXTURE_FIELDS` given on the command line (those not None), as CNMP config overrides."""
-    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+    """The :data:`MIXTURE_FIELDS` given on the command line (those not None): the ``mixture`` section's overrides
+    (pass them as ``CNMPModel(..., mixture=settings)``)."""
+    from lerobot_cnmp.policy.configuration_cnmp import MixtureConfig
 
-    return dataclass_settings(args, CNMPConfig, only=MIXTURE_FIELDS)
+    return dataclass_settings(args, MixtureConfig, only=MIXTURE_FIELDS)
 
 
 def mixture_report(config) -> dict:
     """The mixture settings a fitted model's ``CNMPConfig`` trained with, for a bench's JSON."""
-    return {k: getattr(config, k) for k in MIXTURE_FIELDS}
+    return {k: getattr(config.mixture, k) for k in MIXTURE_FIELDS}
 
 
 def _policy_overrides(train_cfg: dict, committed: dict) -> dict:

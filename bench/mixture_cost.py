@@ -1,8 +1,8 @@
 """Training cost of the mixture decoder (issue 17): time to the single-decoder CNMP's validation NLL on the
 2D obstacle data.
 
-    python -m bench.mixture_cost [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef G] [--batch_entropy_coef B]
-                                 [--shared_decoder_layers S] [--gate_commit C] [--assignment_draws P] [--unconditional_nll_coef C]
+    python -m bench.mixture_cost [--experts 4] [--gate_entropy_coef G] [--batch_entropy_coef B]
+                                 [--shared_decoder_layers S] [--assignment_draws P] [--unconditional_nll_coef C]
                                  [--steps 3000] [--mixture_steps N] [--every 250] [--seed 0 | --seeds 0 1 2 3 4]
 
 Both models (``n_experts`` = 1 and K) train the model, sampling and learning-rate schedule of
@@ -16,7 +16,7 @@ training time (scoring excluded) until each reaches the single decoder's final v
 ratio (bar: <= 2). ``--seeds 0 1 2 3 4`` trains both models once per seed and compares the curves averaged
 over the seeds (at each scoring point: the mean training time and the mean validation NLL), the single
 decoder's final mean NLL the target; each seed's own comparison is printed beside it. One training run's final
-NLL moves by about 0.03 with the seed alone (the initialization and the draws: see README "Mixture decoder"),
+NLL moves by about 0.03 with the seed alone (the initialization and the draws: see docs/mixture.md),
 as much as the mixture's whole margin, so one seed's verdict is noisy. Last line: one JSON object.
 """
 
@@ -90,7 +90,7 @@ def main() -> dict:
     for seed in seeds:
         curves = {"cnmp": run(cfg, args.steps, args.every, val, seed)[0]}
         curves["mixture"], mix_cfg = run(cfg, args.mixture_steps or args.steps, args.every, val, seed,
-                                         n_experts=args.experts, **coefs)
+                                         n_experts=args.experts, mixture=coefs)
         per_seed.append(compare(curves))
         if len(seeds) > 1:
             print(f"seed {seed}: " + verdict(per_seed[-1], args.experts), flush=True)

@@ -1,8 +1,8 @@
 """The weight switch as a change of mode: a mixture CNMP's gate on ``cnmp_weights`` before the grasp and
 after the lift (issue 17).
 
-    python -m bench.mixture_weights [--experts 4] [--mixture_nll assigned|likelihood|cnep] [--gate_entropy_coef C] [--batch_entropy_coef B]
-                                    [--gate_commit always|where_decided|redundant] [--shared_decoder_layers S] [--assignment_draws P]
+    python -m bench.mixture_weights [--experts 4] [--gate_entropy_coef C] [--batch_entropy_coef B]
+                                    [--shared_decoder_layers S] [--assignment_draws P]
                                     [--steps N] [--save DIR]
 
 Fits the config's CNMP (``configs/cnmp_weights.json``: model, sampling, learning rate, steps, batch size)
@@ -59,7 +59,7 @@ def main() -> dict:
     cfg = config(CONFIG)
     data = load_demos(REPO / cfg["dataset"]["root"])
     model = api_model(cfg)
-    model.overrides.update(n_experts=args.experts, **mixture_settings(args))
+    model.overrides.update(n_experts=args.experts, mixture=mixture_settings(args))
     t0 = time.perf_counter()
     model.fit(data["demos"], task_params=data["task_params"], steps=args.steps or cfg["steps"],
               batch_size=cfg["batch_size"], seed=args.seed, progress=False)

@@ -101,7 +101,7 @@ def main() -> dict:
     promp = ProMPBaseline().fit(load_demos(DATASET)["demos"])
     res: dict = {"checkpoint": provenance(ckpt), "episodes": args.episodes, "seed": args.seed}
     res["cnmp_n_experts"] = policy.config.n_experts
-    res["cnmp_expert_selection"] = policy.config.expert_selection
+    res["cnmp_expert_selection"] = policy.config.mixture.expert_selection
     print(f"{'conditions':<18}{'method':<7}{'exec. collision-free %':>24}{'exec. success %':>17}{'plan collision-free %':>23}"
           f"{'exec. over / under %':>22}")
     for choice in CHOICES:

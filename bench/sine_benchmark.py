@@ -1,7 +1,7 @@
 """Multimodal sine benchmark, after the published protocol of CNEP (Yildirim & Ugur, arXiv 2402.08424).
 
     python -m bench.sine_benchmark [--steps 4000] [--seed 0] [--experts 4] [--shared_decoder_layers S]
-                                   [--gate_commit C] [--gate_entropy_coef G] [--mixture_nll M] [--assignment_draws P]
+                                   [--gate_entropy_coef G] [--assignment_draws P]
 
 Data (as in the CNEP code, ``compare_cneps_on_4_sines_abl.py``): 4 modes x 32 demos of 200 steps on
 x = linspace(0, 1, 200). Mode i = 0..3: y = (sin((x + 0.2 (i+1)) · (i+1)π/2 + φ) + ε + 1) / 2, with a
@@ -109,7 +109,7 @@ def main() -> dict:
     x = np.linspace(0.0, 1.0, STEPS)
 
     t0 = time.perf_counter()
-    cnmp = CNMPModel(n_max_context=10, m_max_targets=10).fit(
+    cnmp = CNMPModel(sampling={"n_max_context": 10, "m_max_targets": 10}).fit(
         demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
     )
     fit_s = time.perf_counter() - t0
@@ -117,7 +117,8 @@ def main() -> dict:
     if args.experts > 0:
         t0 = time.perf_counter()
         settings = mixture_settings(args)
-        mixture = CNMPModel(n_max_context=10, m_max_targets=10, n_experts=args.experts, **settings).fit(
+        mixture = CNMPModel(sampling={"n_max_context": 10, "m_max_targets": 10}, n_experts=args.experts,
+                           mixture=settings).fit(
             demos[..., None], steps=args.steps, batch_size=args.batch_size, seed=args.seed, progress=False
         )
         mix_fit_s = time.perf_counter() - t0

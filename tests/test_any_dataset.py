@@ -33,7 +33,7 @@ from safetensors.torch import load_file
 
 from lerobot_cnmp.api import load_pretrained
 from lerobot_cnmp.data.bank import EpisodeBank
-from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig, SamplingConfig
 from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
 from realrobot_data import ACTION_NAMES, CAMERA_KEY, FPS, REPO_ID, STATE_NAMES, make_realrobot_dataset
 
@@ -235,8 +235,8 @@ def _tree(root: Path) -> dict[str, tuple[int, int]]:
         ({"sm": ("observation.state:gripper.pos", "action", "action:gripper.force")}, "repeats"),
         ({"task_features": (CAMERA_KEY,)}, "not numeric"),
         ({"task_features": ("observation.goal",)}, "observation.goal"),
-        ({"feedback_dims": (6,)}, "must be sensed SM dims"),  # SM dim 6 = action:0, commanded
-        ({"tracking_dims": (12,)}, "must be sensed SM dims"),
+        ({"execution": {"feedback_dims": (6,)}}, "must be sensed SM dims"),  # SM dim 6 = action:0, commanded
+        ({"execution": {"tracking_dims": (12,)}}, "must be sensed SM dims"),
         ({"state_tracks_action": True}, "state_tracks_action=True"),  # 6 state dims cannot measure 7 actions
         ({"sm": ("observation.state", "action:0@observation.environment_state:goal_x", "action")}, "task frame"),
         ({"sm": ("observation.state:0@observation.environment_state:nope", "action")}, "'nope'"),
@@ -329,7 +329,7 @@ def test_checkpoint_on_a_robot_with_fewer_state_dims_is_a_clear_error(trained, r
     policy, _, _ = load_pretrained(ckpt)
     policy.eval()
     policy.reset()
-    with pytest.raises(ValueError, match=r"'observation\.state' has 5 dims, the SM reads dim 5"):
+    with pytest.raises(ValueError, match=r"'observation\.state' has 5 dims, but this checkpoint was trained on 6"):
         policy.select_action(_raw_obs(root, state_dims=5))
     # nothing half-written: the next, valid observation is the episode's first step
     fresh, _, _ = load_pretrained(ckpt)
@@ -448,8 +448,8 @@ def test_task_frame_dims_subtract_the_episode_gamma_in_training_and_execution(ro
 
 
 def test_feedback_draws_have_the_shape_of_execution(root, meta):
-    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=0.5,
-                     draws_per_sample=3, m_max_targets=4)
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), sampling=SamplingConfig(
+        feedback_draw_weight=0.5, draws_per_sample=3, m_max_targets=4))
     policy = make_policy(cfg, ds_meta=meta)
     gen = torch.Generator().manual_seed(0)
     eps = torch.tensor([0, 3])
@@ -474,11 +474,11 @@ def test_feedback_draws_have_the_shape_of_execution(root, meta):
 
 def test_feedback_draw_queries_sets_the_uniform_queries(root, meta):
     # None (default): m_max_targets uniform queries besides j and j + 1; 0: exactly execution's two queries
-    kw = dict(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=1.0,
-              draws_per_sample=2, m_max_targets=4, execution={"condition_on_start": False})
+    kw = dict(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), execution={"condition_on_start": False})
+    sampling = dict(feedback_draw_weight=1.0, draws_per_sample=2, m_max_targets=4)
     eps = torch.tensor([1, 2])
     for queries, n_targets in ((None, 2 + 4), (0, 2), (3, 2 + 3)):
-        policy = make_policy(CNMPConfig(**kw, feedback_draw_queries=queries), ds_meta=meta)
+        policy = make_policy(CNMPConfig(**kw, sampling=SamplingConfig(**sampling, feedback_draw_queries=queries)), ds_meta=meta)
         context, targets = policy.feedback_draws(eps, torch.Generator().manual_seed(0))
         assert context.phase.shape == (4, 1) and targets.phase.shape == (4, n_targets)
         assert torch.equal(targets.phase[:, 0], context.phase[:, 0])  # "now" is the sensed point's phase
@@ -486,16 +486,16 @@ def test_feedback_draw_queries_sets_the_uniform_queries(root, meta):
         assert torch.isfinite(loss) and abs(info["nll"] - info["nll_feedback"]) < 1e-4  # weight 1: feedback only
     for bad in (-1, 1.5):
         with pytest.raises(ValueError, match="feedback_draw_queries must be an integer >= 0"):
-            CNMPConfig(feedback_draw_queries=bad)
+            SamplingConfig(feedback_draw_queries=bad)
 
 
 def test_feedback_draws_need_sensed_dims_and_a_weight_in_0_1(meta):
     with pytest.raises(ValueError, match="feedback_draw_weight must be in"):
-        CNMPConfig(feedback_draw_weight=1.5)
+        SamplingConfig(feedback_draw_weight=1.5)
     with pytest.raises(ValueError, match="nll_beta must be in"):
         CNMPConfig(nll_beta=-0.1)
-    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), feedback_draw_weight=0.5,
-                     sm=("action",))
+    cfg = CNMPConfig(device="cpu", encoder_layers=(32, 32), decoder_layers=(32, 32), sm=("action",),
+                     sampling=SamplingConfig(feedback_draw_weight=0.5))
     with pytest.raises(ValueError, match="feedback_draw_weight > 0 needs the joint layout with sensed dims"):
         make_policy(cfg, ds_meta=meta)
 

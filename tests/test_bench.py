@@ -209,13 +209,16 @@ def test_mixture_options_take_the_configs_types_and_choices():
     import pytest
 
     from bench.common import add_mixture_arguments, mixture_settings
-    from lerobot_cnmp.policy.configuration_cnmp import MIXTURE_NLL
+    from lerobot_cnmp.policy.configuration_cnmp import EXPERT_SELECTION
 
     p = argparse.ArgumentParser()
     add_mixture_arguments(p)
-    assert mixture_settings(p.parse_args(["--mixture_nll", MIXTURE_NLL[-1]])) == {"mixture_nll": MIXTURE_NLL[-1]}
+    assert mixture_settings(p.parse_args(["--expert_selection", EXPERT_SELECTION[-1]])) == {
+        "expert_selection": EXPERT_SELECTION[-1]}
     with pytest.raises(SystemExit):
-        p.parse_args(["--mixture_nll", "nonsense"])
+        p.parse_args(["--expert_selection", "nonsense"])
+    with pytest.raises(SystemExit):
+        p.parse_args(["--mixture_nll", "assigned"])  # removed: only the assigned loss remains
     with pytest.raises(SystemExit):
         p.parse_args(["--assignment_draws", "1.5"])
 
@@ -233,7 +236,7 @@ def test_api_model_takes_every_model_setting_of_the_config():
     model = api_model({**cfg, "policy": {**cfg["policy"], **extra}})
     got = model.overrides
     assert got["nll_beta"] == 0.5 and tuple(got["encoder_layers"]) == (64, 64) and got["execution"].pd_kp == 0.5
-    assert got["n_max_context"] == cfg["policy"]["n_max_context"]
+    assert got["sampling"].n_max_context == cfg["policy"]["sampling"]["n_max_context"]
     assert not {"device", "state_tracks_action", "type", "push_to_hub"} & set(got)
     with pytest.raises(ValueError, match="not images"):
         api_model({**cfg, "policy": {**cfg["policy"], "use_images": True}})

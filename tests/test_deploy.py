@@ -69,7 +69,7 @@ def trained(tmp_path_factory) -> Path:
     _run([str(BIN / "lerobot-train"), "--policy.type=cnmp", "--policy.device=cpu", "--policy.push_to_hub=false",
           # min_std 0.1: most SM dims are the same in every demo; with a σ floor of 0.01 their NLL gradients swamp
           # the one dim that varies (shoulder_pan), which then ignores its conditions
-          "--policy.draws_per_sample=8", "--policy.state_tracks_action=true", "--policy.min_std=0.1", "--dataset.repo_id=local/so101_reach",
+          "--policy.sampling.draws_per_sample=8", "--policy.state_tracks_action=true", "--policy.min_std=0.1", "--dataset.repo_id=local/so101_reach",
           f"--dataset.root={data}", "--steps=4000", "--batch_size=8", "--num_workers=0", "--save_freq=4000",
           "--log_freq=1000", "--env_eval_freq=0", "--seed=0", f"--output_dir={tmp / 'train'}"], tmp / "train.log")
     return tmp / "train" / "checkpoints" / "last" / "pretrained_model"

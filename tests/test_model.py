@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lerobot_cnmp.api import CNMPModel, Condition, pad_demos
-from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig, MixtureConfig
 from lerobot_cnmp.model.cnmp import CNMP, Context, Episodes, Targets
 from lerobot_cnmp.model.mixture import MixtureCNMP, mixture_of, n_experts
 from lerobot_cnmp.model.numpy_cnmp import NumpyCNMP
@@ -264,8 +264,10 @@ def test_not_a_checkpoint(tmp_path):
      ("control_fps", -1.0), ("sensed_obs_prob", 2.0), ("draws_per_sample", 0), ("phase_frequencies", -1)],
 )
 def test_bad_config_values(field, value):
+    section = {"control_fps": "execution", "n_max_context": "sampling", "partial_obs_prob": "sampling",
+               "sensed_obs_prob": "sampling", "draws_per_sample": "sampling"}.get(field)
     with pytest.raises(ValueError, match=field):
-        CNMPConfig(**{field: value})
+        CNMPConfig(**({section: {field: value}} if section else {field: value}))
 
 
 def test_context_in_targets_puts_observations_among_queries():
@@ -503,10 +505,10 @@ def test_unconditional_nll_coef_must_be_positive_and_only_with_a_mixture():
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
             MixtureCNMP(sm_dim=2, n_experts=2, unconditional_nll_coef=bad)
         with pytest.raises(ValueError, match="unconditional_nll_coef must be a finite number > 0"):
-            CNMPConfig(n_experts=2, unconditional_nll_coef=bad)
-    with pytest.raises(ValueError, match="unconditional_nll_coef weighs"):
-        CNMPConfig(unconditional_nll_coef=0.5)
-    assert CNMPConfig(n_experts=2, unconditional_nll_coef=0.25).unconditional_nll_coef == 0.25
+            CNMPConfig(n_experts=2, mixture={"unconditional_nll_coef": bad})
+    with pytest.raises(ValueError, match="unconditional_nll_coef=0.5 applies to a mixture, but n_experts is 1"):
+        CNMPConfig(mixture={"unconditional_nll_coef": 0.5})
+    assert CNMPConfig(n_experts=2, mixture={"unconditional_nll_coef": 0.5}).mixture.unconditional_nll_coef == 0.5
 
 
 def test_assignment_draws_must_be_a_count():
@@ -514,12 +516,12 @@ def test_assignment_draws_must_be_a_count():
         MixtureCNMP(sm_dim=2, n_experts=2, assignment_draws=-1)
     for bad in (1.5, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
-            CNMPConfig(n_experts=2, assignment_draws=bad)
+            CNMPConfig(n_experts=2, mixture={"assignment_draws": bad})
         with pytest.raises(ValueError, match="assignment_draws must be an integer"):
             MixtureCNMP(sm_dim=2, n_experts=2, assignment_draws=bad)
-    with pytest.raises(ValueError, match="assignment_draws decides"):  # K = 1: it would do nothing
-        CNMPConfig(assignment_draws=1, n_experts=1)
-    assert CNMPConfig(n_experts=2, assignment_draws=1).assignment_draws == 1
+    with pytest.raises(ValueError, match="assignment_draws=2 applies to a mixture"):  # it would do nothing
+        CNMPConfig(mixture={"assignment_draws": 2})
+    assert CNMPConfig(n_experts=2, mixture={"assignment_draws": 2}).mixture.assignment_draws == 2
 
 
 def test_revive_starving_gives_an_idle_expert_the_episode_it_fits_least_badly():
@@ -551,7 +553,7 @@ def test_bad_number_of_experts_is_a_clear_error(k):
                                           ("expert_selection", "random"), ("mode_switch_margin", 1.0)])
 def test_bad_mixture_settings(field, value):
     with pytest.raises(ValueError, match=field):
-        CNMPConfig(**{field: value})
+        CNMPConfig(mixture={field: value})
 
 
 def test_numpy_copy_refuses_a_mixture(mixture_net):
@@ -651,11 +653,11 @@ def test_shared_decoder_layers():
     with pytest.raises(ValueError, match="shared_decoder_layers"):
         MixtureCNMP(sm_dim=2, n_experts=2, shared_decoder_layers=4)
     with pytest.raises(ValueError, match="n_experts is 1"):
-        CNMPConfig(shared_decoder_layers=1)
-    # the default: a mixture shares all hidden layers but the last, K = 1 shares nothing; 0 keeps CNEP's K networks
-    assert CNMPConfig(n_experts=4).shared_decoder_layers == 2 and CNMPConfig().shared_decoder_layers == 0
-    assert CNMPConfig(n_experts=4, decoder_layers=(64,)).shared_decoder_layers == 0
-    assert CNMPConfig(n_experts=4, shared_decoder_layers=0).shared_decoder_layers == 0
+        CNMPConfig(mixture={"shared_decoder_layers": 1})
+    # the default: a mixture shares all hidden layers, K = 1 shares nothing; 0 keeps CNEP's K networks
+    assert CNMPConfig(n_experts=4).mixture.shared_decoder_layers == 3 and CNMPConfig().mixture.shared_decoder_layers == 0
+    assert CNMPConfig(n_experts=4, decoder_layers=(64,)).mixture.shared_decoder_layers == 1
+    assert CNMPConfig(n_experts=4, mixture={"shared_decoder_layers": 0}).mixture.shared_decoder_layers == 0
 
 
 def test_mixture_parameter_names_are_the_checkpoints():

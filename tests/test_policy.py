@@ -430,13 +430,13 @@ def test_pd_law_and_sigma_scaled_gains(policy_and_data):
 def test_bad_execution_config_is_rejected(field, value, match):
     with pytest.raises(ValueError, match=match):
         ExecutionConfig(**{field: value})
-    with pytest.raises(ValueError, match=match):  # the old flat keyword form
-        CNMPConfig(**{field: value})
+    with pytest.raises(ValueError, match=match):  # the section given as a dict
+        CNMPConfig(execution={field: value})
 
 
 def test_feedback_dims_outside_the_sm_are_rejected(meta):
     with pytest.raises(ValueError, match="feedback_dims"):
-        make_policy(small_config(feedback_dims=(0, 5)), ds_meta=meta)
+        make_policy(small_config(execution={"feedback_dims": (0, 5)}), ds_meta=meta)
 
 
 def test_new_batch_of_envs_starts_at_phase_zero(policy_and_data):
@@ -463,7 +463,7 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
 
     root = REPO / "datasets" / "cnmp_pickplace"
     pp_meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_pickplace", root=root)
-    cfg = small_config(feedback_dims=(0, 1, 2, 3, 4, 5))
+    cfg = small_config(execution={"feedback_dims": (0, 1, 2, 3, 4, 5)})
     policy = make_policy(cfg, ds_meta=pp_meta)
     assert policy.config.task_dim == 2 and policy.config.sm_dim == 7
     pre, post = make_cnmp_pre_post_processors(policy.config)
@@ -635,7 +635,7 @@ def test_mixture_policy_follows_the_committed_expert_and_loads_bit_identically(m
         chain.append(str(e))
         e = e.__cause__ or e.__context__
     assert any("n_experts is 1" in m for m in chain), chain
-    cfg["shared_decoder_layers"] = 0
+    cfg.pop("mixture")  # the single decoder's settings: no shared trunk
     (ckpt / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="do not fit"):
         CNMPPolicy.from_pretrained(ckpt)

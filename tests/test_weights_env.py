@@ -238,8 +238,8 @@ def test_cnmp_spreads_over_the_zones_before_the_grasp_and_classifies_after_the_l
     from lerobot_cnmp.execution.conditions import Condition
 
     demos = np.stack([actions for _, actions, _ in demo_rollouts.values()])
-    model = CNMPModel(phase_frequencies=8, min_std=0.1, n_max_context=6, m_max_targets=8, draws_per_sample=8,
-                      optimizer_lr=2e-3).fit(demos, steps=3000, batch_size=8, seed=0, progress=False)
+    model = CNMPModel(phase_frequencies=8, min_std=0.1, optimizer_lr=2e-3,
+                      sampling={"n_max_context": 6, "m_max_targets": 8, "draws_per_sample": 8}).fit(demos, steps=3000, batch_size=8, seed=0, progress=False)
     lift = 112
     sd_before, sd_after, right = [], [], 0
     for (shape, cat, _), (states, _, _) in demo_rollouts.items():

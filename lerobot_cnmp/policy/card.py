@@ -22,8 +22,8 @@ def _settings(c) -> str:
     lines = (
         f"- SM: {c.sm_dim} dims ({', '.join(c.sm_names or [])}); inputs: {inputs}; task parameters γ: "
         f"{c.task_dim} dims.\n"
-        f"- Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.n_max_context},\n"
-        f"  m_max {c.m_max_targets}, draws per sample {c.draws_per_sample}, phase Fourier features "
+        f"- Encoder {list(c.encoder_layers)}, query network {list(c.decoder_layers)}, n_max {c.sampling.n_max_context},\n"
+        f"  m_max {c.sampling.m_max_targets}, draws per sample {c.sampling.draws_per_sample}, phase Fourier features "
         f"{c.phase_frequencies}."
     )
     if c.image_keys:

@@ -28,11 +28,11 @@ def _network_from_config(config: CNMPConfig) -> CNMP:
                  decoder_layers=config.decoder_layers, min_std=config.min_std,
                  phase_frequencies=config.phase_frequencies)
     if config.n_experts > 1:
-        return MixtureCNMP(**shape, n_experts=config.n_experts, gate_entropy_coef=config.gate_entropy_coef,
-                           batch_entropy_coef=config.batch_entropy_coef,
-                           shared_decoder_layers=config.shared_decoder_layers,
-                           assignment_draws=config.assignment_draws,
-                           unconditional_nll_coef=config.unconditional_nll_coef)
+        return MixtureCNMP(**shape, n_experts=config.n_experts, gate_entropy_coef=config.mixture.gate_entropy_coef,
+                           batch_entropy_coef=config.mixture.batch_entropy_coef,
+                           shared_decoder_layers=config.mixture.shared_decoder_layers,
+                           assignment_draws=config.mixture.assignment_draws,
+                           unconditional_nll_coef=config.mixture.unconditional_nll_coef)
     model = CNMP(**shape, nll_beta=config.nll_beta)
     spec = config.spec
     if config.commanded_loss_weight != 1.0 and not spec.tied:
@@ -49,7 +49,7 @@ def _executor_for(policy: "CNMPPolicy") -> CNMPExecutor:
     c = policy.config
     return CNMPExecutor(
         policy.network, policy.normalizer, c.spec, c.execution, c, policy.episode_inputs, policy.task_params,
-        modes=ModeSelector(c.mode_switch_margin, c.expert_selection) if c.n_experts > 1 else None,
+        modes=ModeSelector(c.mixture.mode_switch_margin, c.mixture.expert_selection) if c.n_experts > 1 else None,
         conditions=c.conditions,
         feature_widths={k: ft.shape[0] for k, ft in c.input_features.items() if len(ft.shape) == 1})
 
@@ -89,7 +89,7 @@ class CNMPPolicy(PreTrainedPolicy):
         sensed_only[spec.sensed] = 1.0
         self.register_buffer("sensed_only_mask", None if spec.tied or not spec.sensed else sensed_only,
                              persistent=False)
-        if config.feedback_draw_weight > 0 and self.sensed_only_mask is None:
+        if config.sampling.feedback_draw_weight > 0 and self.sensed_only_mask is None:
             raise ValueError(
                 "feedback_draw_weight > 0 needs the joint layout with sensed dims (execution conditions on them); "
                 f"this SM is {'tied to the action' if spec.tied else 'commanded only'}: set it to 0")

@@ -77,7 +77,7 @@ def episodes_for(policy, episode_index: Tensor, generator: torch.Generator | Non
     c = policy.config
     dev = policy.normalizer.sm_std.device
     episode_index = episode_index.reshape(-1)
-    values, phase = policy.bank.draw(episode_index.repeat_interleave(draws), c.n_max_context + c.m_max_targets,
+    values, phase = policy.bank.draw(episode_index.repeat_interleave(draws), c.sampling.n_max_context + c.sampling.m_max_targets,
                                      generator)
     values = policy.normalizer.sm(values.to(dev))
     valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
@@ -95,9 +95,9 @@ def feedback_draws(policy, episode_index: Tensor, generator: torch.Generator | N
     dev = policy.normalizer.sm_std.device
     episode_index = episode_index.reshape(-1)
     if inputs is None:
-        inputs = training_inputs(policy, episode_index, c.draws_per_sample)
-    m = c.m_max_targets if c.feedback_draw_queries is None else int(c.feedback_draw_queries)
-    values, phase = policy.bank.draw_feedback(episode_index.repeat_interleave(c.draws_per_sample), m, generator)
+        inputs = training_inputs(policy, episode_index, c.sampling.draws_per_sample)
+    m = c.sampling.m_max_targets if c.sampling.feedback_draw_queries is None else int(c.sampling.feedback_draw_queries)
+    values, phase = policy.bank.draw_feedback(episode_index.repeat_interleave(c.sampling.draws_per_sample), m, generator)
     values, phase = policy.normalizer.sm(values.to(dev)), phase.to(dev)
     first = 0 if c.execution.condition_on_start else 1
     n_ctx = 2 - first
@@ -116,16 +116,16 @@ def training_loss(policy, batch: dict[str, Tensor], generator: torch.Generator |
     c = policy.config
     if "episode_index" not in batch:
         raise KeyError(f"CNMP training batches need 'episode_index' (LeRobot's loader gives it); got {sorted(batch)}")
-    episodes = episodes_for(policy, batch["episode_index"], generator, draws=c.draws_per_sample)
+    episodes = episodes_for(policy, batch["episode_index"], generator, draws=c.sampling.draws_per_sample)
     context, targets = sample_context_and_targets(
-        episodes, c.n_max_context, c.m_max_targets, c.partial_obs_prob, generator, c.context_in_targets,
-        policy.sensed_only_mask, c.sensed_obs_prob,
+        episodes, c.sampling.n_max_context, c.sampling.m_max_targets, c.sampling.partial_obs_prob, generator, c.sampling.context_in_targets,
+        policy.sensed_only_mask, c.sampling.sensed_obs_prob,
     )
-    loss, info = policy.model.training_loss(context, targets, c.draws_per_sample)
-    w = c.feedback_draw_weight
+    loss, info = policy.model.training_loss(context, targets, c.sampling.draws_per_sample)
+    w = c.sampling.feedback_draw_weight
     if w > 0:
         fb_draws = feedback_draws(policy, batch["episode_index"], generator, inputs=episodes.task_params)
-        fb_loss, fb_info = policy.model.training_loss(*fb_draws, c.draws_per_sample)
+        fb_loss, fb_info = policy.model.training_loss(*fb_draws, c.sampling.draws_per_sample)
         info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
         loss = (1.0 - w) * loss + w * fb_loss
         info["nll"] = loss.item()
