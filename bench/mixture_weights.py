@@ -33,7 +33,7 @@ NEAR_UNIFORM = 0.1  # "near 1/4" before the grasp: every expert's π within 0.1 
 
 def unseen_masses() -> list[float]:
     """TEST_MASSES and 6 more masses per weight category, none of them a demo's mass."""
-    from lerobot_cnmp.sims.weights.env import TEST_MASSES
+    from lerobot_cnmp.sims.weights.task import TEST_MASSES
 
     grid = {"light": np.linspace(0.16, 0.34, 6), "heavy": np.linspace(0.66, 0.94, 6)}
     out = sorted({round(float(m), 4) for cat in TEST_MASSES for m in (*TEST_MASSES[cat], *grid[cat])})
@@ -53,7 +53,8 @@ def main() -> dict:
     import torch
 
     from lerobot_cnmp.data.demos import load_demos
-    from lerobot_cnmp.sims.weights.env import HEAVY_THRESHOLD, SHAPES, ZONE_XY, WeightsEnv
+    from lerobot_cnmp.sims.weights.env import WeightsEnv
+    from lerobot_cnmp.sims.weights.task import HEAVY_THRESHOLD, SHAPES, ZONE_XY
 
     torch.manual_seed(args.seed)
     cfg = config(CONFIG)

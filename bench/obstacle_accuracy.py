@@ -28,7 +28,7 @@ from bench.common import CHECKPOINT, DATASET, REPO, add_checkpoint_args, checkpo
 
 def evaluate(predict, condition_sets, phases, demos):
     """Collision-free rate (%), mean error at the conditions, mean off-demo distance, per-set flags."""
-    from lerobot_cnmp.sims.obstacle2d.env import AGENT_RADIUS, OBSTACLE_CENTER, OBSTACLE_RADIUS
+    from lerobot_cnmp.sims.obstacle2d.model import AGENT_RADIUS, OBSTACLE_CENTER, OBSTACLE_RADIUS
 
     free, errors, off = [], [], []
     for conds in condition_sets:
@@ -56,8 +56,8 @@ def main() -> dict:
     from lerobot_cnmp.promp.baselines import DMPBaseline, ProMPBaseline
     from lerobot_cnmp.execution.conditions import Condition
     from lerobot_cnmp.data.demos import load_demos
-    from lerobot_cnmp.sims.obstacle2d.env import (OBSTACLE_CENTER, OBSTACLE_RADIUS, PAPER_CONDITIONS, Obstacle2DTask,
-                                              sample_episode)
+    from lerobot_cnmp.sims.obstacle2d.model import OBSTACLE_CENTER, OBSTACLE_RADIUS
+    from lerobot_cnmp.sims.obstacle2d.task import PAPER_CONDITIONS, Obstacle2DTask, sample_episode
     from lerobot_cnmp.plot import mode_colors, plot_conditioned_xy
 
     demos = load_demos(args.dataset)["demos"]

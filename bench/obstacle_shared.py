@@ -42,7 +42,7 @@ DEMO_STEPS = 200
 
 
 def clear_of_obstacle(path: np.ndarray) -> bool:
-    from lerobot_cnmp.sims.obstacle2d.env import AGENT_RADIUS, OBSTACLE_CENTER, OBSTACLE_RADIUS
+    from lerobot_cnmp.sims.obstacle2d.model import AGENT_RADIUS, OBSTACLE_CENTER, OBSTACLE_RADIUS
 
     return bool((np.linalg.norm(path - OBSTACLE_CENTER, axis=1) - OBSTACLE_RADIUS - AGENT_RADIUS).min() > 0)
 
@@ -50,7 +50,7 @@ def clear_of_obstacle(path: np.ndarray) -> bool:
 def mode_of(path: np.ndarray) -> str:
     """``"over"`` or ``"under"``: the side of the obstacle the path passes, read where it crosses the obstacle's
     x (the point of the path nearest to that x)."""
-    from lerobot_cnmp.sims.obstacle2d.env import OBSTACLE_CENTER
+    from lerobot_cnmp.sims.obstacle2d.model import OBSTACLE_CENTER
 
     k = int(np.argmin(np.abs(path[:, 0] - OBSTACLE_CENTER[0])))
     return "over" if path[k, 1] > OBSTACLE_CENTER[1] else "under"

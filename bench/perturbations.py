@@ -38,7 +38,7 @@ LAG_ROWS = ("none", "push_toward", "push_random")
 
 def obstacle_sim(policy, perturbation: str, n_envs: int, **env_kwargs):
     """A vector env of the obstacle sim with its LeRobot env processors."""
-    from lerobot_cnmp.sims.configs import CNMPObstacle2DEnv
+    from lerobot_cnmp.sims.obstacle2d.config import CNMPObstacle2DEnv
 
     return make_sim(CNMPObstacle2DEnv(perturbation=perturbation, render_mode=None, **env_kwargs), policy, n_envs)
 
@@ -114,7 +114,7 @@ def plot_held_episode(policy, pre, post, out: Path, seed: int) -> Path:
 
 
 def main() -> dict:
-    from lerobot_cnmp.sims.obstacle2d.env import RATE_LIMIT
+    from lerobot_cnmp.sims.obstacle2d.model import RATE_LIMIT
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on cnmp_obstacle2d")

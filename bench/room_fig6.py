@@ -56,7 +56,7 @@ def plot(results: dict, out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lerobot_cnmp.sims.room.env import plan_path
+    from lerobot_cnmp.sims.room.planner import plan_path
 
     rooms = len(next(iter(results.values())))
     fig, axes = plt.subplots(rooms, len(results), figsize=(3.6 * len(results), 3.6 * rooms), squeeze=False)
@@ -104,8 +104,8 @@ def main() -> dict:
     import gymnasium as gym
 
     from lerobot_cnmp.api import load_pretrained
-    from lerobot_cnmp.sims import ROOM_GYM_ID
-    from lerobot_cnmp.sims.room.env import CONDITION_CHOICES
+    from lerobot_cnmp.sims.room.config import ROOM_GYM_ID
+    from lerobot_cnmp.sims.room.task import CONDITION_CHOICES
 
     policy, pre, post = load_pretrained(args.checkpoint)
     policy.eval()

@@ -29,7 +29,7 @@ import torch
 
 from bench.common import REPO, make_sim, provenance, resolve_checkpoint
 
-SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.sims.configs, default checkpoint, its config)
+SIMS = {  # name: (EnvConfig class name exported by lerobot_cnmp.sims, default checkpoint, its config)
     "obstacle2d": ("CNMPObstacle2DEnv", "outputs/main", "configs/cnmp_obstacle2d.json"),
     "pickplace": ("CNMPPickPlaceEnv", "outputs/pickplace", "configs/cnmp_pickplace.json"),
     "weights": ("CNMPWeightsEnv", "outputs/weights", "configs/cnmp_weights.json"),
@@ -38,7 +38,7 @@ SIMS = {  # name: (EnvConfig class name in lerobot_cnmp.sims.configs, default ch
 
 
 def env_config(sim: str):
-    from lerobot_cnmp.sims import configs
+    from lerobot_cnmp import sims as configs
 
     return getattr(configs, SIMS[sim][0])(render_mode=None)
 

@@ -39,7 +39,7 @@ def execute(policy, pre, post, gammas: list | None, episodes: int, seed: int) ->
     """Success per episode: one per γ of ``gammas``, or ``episodes`` with γ drawn by the env."""
     from lerobot.scripts.lerobot_eval import rollout
 
-    from lerobot_cnmp.sims.configs import CNMPPickPlaceEnv
+    from lerobot_cnmp.sims.pickplace.config import CNMPPickPlaceEnv
 
     runs = [(g, 1) for g in gammas] if gammas else [(None, episodes)]
     out = []
@@ -60,7 +60,8 @@ def plot_fig8(model, demos, gammas, phases, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     from lerobot_cnmp.execution.conditions import Condition
-    from lerobot_cnmp.sims.pickplace.env import JOINT_NAMES, reference_trajectory
+    from lerobot_cnmp.sims.pickplace.kinematics import reference_trajectory
+    from lerobot_cnmp.sims.pickplace.model import JOINT_NAMES
 
     joints = (1, 2, 3)  # shoulder, elbow, wrist 1: the joints the arc moves most
     fig, axes = plt.subplots(len(joints), len(gammas), figsize=(4.2 * len(gammas), 2.6 * len(joints)), sharex=True)
@@ -100,8 +101,9 @@ def main() -> dict:
     from lerobot_cnmp.api import CNMPModel, load_pretrained
     from lerobot_cnmp.execution.conditions import Condition
     from lerobot_cnmp.data.demos import load_demos
-    from lerobot_cnmp.sims.pickplace.env import (JOINT_NAMES, PAPER_EXTRAPOLATION, PAPER_INTERPOLATION,
-                                             is_extrapolation, reference_trajectory)
+    from lerobot_cnmp.sims.pickplace.kinematics import reference_trajectory
+    from lerobot_cnmp.sims.pickplace.model import JOINT_NAMES
+    from lerobot_cnmp.sims.pickplace.planner import PAPER_EXTRAPOLATION, PAPER_INTERPOLATION, is_extrapolation
 
     demos = load_demos(REPO / "datasets" / "cnmp_pickplace")["demos"]
     ckpt = checkpoint_from_args(args, "cnmp_pickplace", config_path=CONFIG)

@@ -37,7 +37,7 @@ PHASES = np.linspace(0.0, 1.0, 200)
 def validation_set(n: int, seed: int):
     """``n`` fresh tasks: (conditions: start + a via point, true path [200, 2])."""
     from lerobot_cnmp.execution.conditions import Condition
-    from lerobot_cnmp.sims.obstacle2d.env import Obstacle2DTask
+    from lerobot_cnmp.sims.obstacle2d.task import Obstacle2DTask
 
     rng = np.random.default_rng(seed)
     out = []

@@ -61,7 +61,7 @@ def plot(log: dict, out: Path, title: str) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse, Rectangle
 
-    from lerobot_cnmp.sims.weights.env import PICK_XY, ZONE_HALF, ZONE_RGBA, ZONE_XY
+    from lerobot_cnmp.sims.weights.task import PICK_XY, ZONE_HALF, ZONE_RGBA, ZONE_XY
 
     moments = moments_of(log)
     fig, (ax, axp) = plt.subplots(1, 2, figsize=(11, 4.6), gridspec_kw={"width_ratios": [1, 1.25]})
@@ -129,8 +129,9 @@ def main() -> dict:
     args = p.parse_args()
 
     from lerobot_cnmp.api import load_pretrained
-    from lerobot_cnmp.sims.configs import CNMPWeightsEnv
-    from lerobot_cnmp.sims.weights.env import SHAPES, WeightsEnv
+    from lerobot_cnmp.sims.weights.config import CNMPWeightsEnv
+    from lerobot_cnmp.sims.weights.env import WeightsEnv
+    from lerobot_cnmp.sims.weights.task import SHAPES
 
     ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
     policy, pre, post = load_pretrained(ckpt)

@@ -48,7 +48,8 @@ def main() -> dict:
     args = p.parse_args()
 
     from lerobot_cnmp.api import CNMPModel
-    from lerobot_cnmp.sims.weights.env import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY, WeightsEnv
+    from lerobot_cnmp.sims.weights.env import WeightsEnv
+    from lerobot_cnmp.sims.weights.task import HEAVY_THRESHOLD, SHAPES, TEST_MASSES, ZONE_XY
 
     ckpt = checkpoint_from_args(args, "cnmp_weights", config_path=CONFIG)
     model = CNMPModel.load(ckpt)

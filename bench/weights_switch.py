@@ -32,7 +32,7 @@ def run_set(policy, pre, post, feedback: bool, episodes: int, batch: int, seed: 
     """Per episode: did the switch happen, success (any step, as lerobot-eval counts it)."""
     from lerobot.scripts.lerobot_eval import rollout
 
-    from lerobot_cnmp.sims.configs import CNMPWeightsEnv
+    from lerobot_cnmp.sims.weights.config import CNMPWeightsEnv
 
     policy.config.execution.online_feedback = feedback
     env, env_pre, env_post = make_sim(CNMPWeightsEnv(perturbation="weight_switch", render_mode=None), policy, batch)

@@ -105,7 +105,8 @@ def paper_figure(checkpoint: str | Path, dataset: str | Path, out: str | Path) -
     """The paper's Fig. 4 (CNMP row) for the obstacle task, from a checkpoint and its dataset."""
     from lerobot_cnmp.api import CNMPModel
     from lerobot_cnmp.data.demos import load_demos
-    from lerobot_cnmp.sims.obstacle2d.env import OBSTACLE_CENTER, OBSTACLE_RADIUS, PAPER_CONDITIONS
+    from lerobot_cnmp.sims.obstacle2d.model import OBSTACLE_CENTER, OBSTACLE_RADIUS
+    from lerobot_cnmp.sims.obstacle2d.task import PAPER_CONDITIONS
 
     model = CNMPModel.load(checkpoint)
     data = load_demos(dataset)

@@ -6,8 +6,9 @@ the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` 
 features are stored as float32; image features (``pixels/<name>`` in the EnvConfig, uint8 H x W x C) as
 PNG frames (dtype ``image``, no video encoding).
 
-The dataset is written atomically: into a temporary sibling folder, finalized, given a dataset card, then
-renamed to ``root``.
+The dataset is written atomically: into a staging sibling folder ``.<name>.<pid>.<random>.tmp``, finalized,
+given a dataset card (:mod:`lerobot_cnmp.record_card`), then renamed to ``root``. Staging folders left by a
+killed recording are removed by the next recording of the same ``root`` (:func:`clean_stale_staging`).
 
 CLI::
 
@@ -17,8 +18,8 @@ CLI::
 from __future__ import annotations
 
 import argparse
-import collections
 import dataclasses
+import glob
 import os
 import shutil
 import sys
@@ -31,7 +32,8 @@ import numpy as np
 from lerobot.configs import FeatureType
 from tqdm import tqdm
 
-from lerobot_cnmp.sims import SIMS, SimSpec
+from lerobot_cnmp.record_card import record_command, write_card
+from lerobot_cnmp.sims.registry import SIMS, SimSpec
 
 IMAGE_WRITER_THREADS = 2  # threads writing the PNG frames of image features
 
@@ -113,133 +115,6 @@ def parse_action_noise(text: str | float | list | None, action_dim: int) -> np.n
     return noise if noise.any() else None
 
 
-def _command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str,
-             action_noise: str | None = None, max_failed: int = 0, demo_length: int | None = None) -> str:
-    cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
-    if demo_length is not None and demo_length != SIMS[sim].demo_length:
-        cmd += f" --demo_length {demo_length}"
-    if action_noise is not None:
-        cmd += f" --action_noise {action_noise}"
-    if max_failed:
-        cmd += f" --max_failed {max_failed}"
-    if repo_id != f"lerobot-cnmp/{sim}":
-        cmd += f" --repo_id {repo_id}"
-    spec = SIMS[sim]
-    if conditions != spec.default_conditions:
-        cmd += f" --conditions {conditions}"
-    return cmd
-
-
-def _noise_note(action_noise: np.ndarray | None) -> str:
-    if action_noise is None:
-        return ""
-    return (f"\nRecorded with injected execution noise (DART, Laskey et al. 2017): the env executed the expert's "
-            f"action plus Gaussian noise of std {np.round(action_noise, 4).tolist()} per action dim (clipped to the "
-            f"action space), while `action` holds the expert's own, noise-free action at the state reached. The "
-            f"demos thus show how the expert recovers from deviations.\n")
-
-
-def _dropped_note(dropped: list[int] | None) -> str:
-    if not dropped:
-        return ""
-    return (f"\n{len(dropped)} demo(s) failed and were dropped (the next seed was recorded instead): reset seeds "
-            f"{dropped}.\n")
-
-
-def _write_card(
-    path: Path,
-    *,
-    sim: str,
-    spec: SimSpec,
-    cfg,
-    features: dict,
-    repo_id: str,
-    n_episodes: int,
-    seed: int,
-    conditions: str,
-    labels: list[str],
-    kinds: list[str],
-    command: str,
-    elapsed_s: float,
-    action_noise: np.ndarray | None = None,
-    seeds: list[int] | None = None,
-    dropped: list[int] | None = None,
-) -> None:
-    counts = collections.Counter(labels)
-    feat_rows = "\n".join(
-        f"| `{k}` | {v['dtype']} | {list(v['shape'])} | {', '.join(v['names'][:6])}"
-        f"{', ...' if len(v['names']) > 6 else ''} |"
-        for k, v in features.items()
-    )
-    seeds = seeds if seeds is not None else [seed + i for i in range(len(labels))]
-    ep_rows = "\n".join(f"| {i} | {sd} | {lab} | {kind} |" for i, (sd, lab, kind) in enumerate(zip(seeds, labels, kinds)))
-    count_rows = "\n".join(f"| {lab} | {n} |" for lab, n in sorted(counts.items()))
-    card = f"""---
-license: apache-2.0
-task_categories:
-- robotics
-tags:
-- LeRobot
-- cnmp
-- movement-primitives
-- mujoco
-configs:
-- config_name: default
-  data_files: data/*/*.parquet
----
-
-# {repo_id}
-
-Scripted demonstrations of the `{sim}` sim of
-lerobot-cnmp (Conditional Neural Movement Primitives, Seker et al., RSS 2019),
-in LeRobotDataset v3 format.
-
-## Sim and task family
-
-{spec.description}
-
-Conditions used while recording: `{conditions}`.
-
-## Episodes
-
-{n_episodes} episodes of {spec.demo_length} frames each at {cfg.fps} fps
-({spec.demo_length / cfg.fps:.2f} s per episode), every one checked to succeed in the sim (its
-`info["is_success"]`, see above).
-
-| episode label | episodes |
-|---|---|
-{count_rows}
-
-| episode | reset seed | label | conditions |
-|---|---|---|---|
-{ep_rows}
-
-## Features
-
-| key | dtype | shape | names |
-|---|---|---|---|
-{feat_rows}
-
-Each frame holds the observation *before* the action and the action commanded at that step (the
-position-servo target). {spec.features_note}
-{_noise_note(action_noise)}{_dropped_note(dropped)}
-## Regenerate
-
-```bash
-{command}
-```
-
-Seed {seed}: episode i is reset with the seed in its row above (seed {seed} + i unless demos were dropped), so the same command gives identical data.
-Generating it took {elapsed_s:.1f} s ({elapsed_s / n_episodes:.3f} s per episode) on a machine with
-{os.cpu_count()} CPU cores.
-
-## License
-
-Apache-2.0.
-"""
-    path.write_text(card)
-
-
 def record_dataset(
     sim: str,
     root: Path | str,
@@ -317,7 +192,8 @@ def record_dataset(
         ds_logging, bars_were_on = None, False
 
     root.parent.mkdir(parents=True, exist_ok=True)
-    tmp_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
+    clean_stale_staging(root)
+    tmp_parent = Path(tempfile.mkdtemp(prefix=f".{root.name}.{os.getpid()}.", suffix=".tmp", dir=root.parent))
     env = ds = None
     try:
         env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
@@ -381,7 +257,7 @@ def record_dataset(
         ds.finalize()
         elapsed_s = time.perf_counter() - t_start
         _remove_empty_dirs(tmp_parent / "dataset" / "images")  # LeRobot's PNG staging, emptied per episode
-        _write_card(
+        write_card(
             tmp_parent / "dataset" / "README.md",
             sim=sim,
             spec=spec,
@@ -393,7 +269,7 @@ def record_dataset(
             conditions=conditions,
             labels=labels,
             kinds=kinds,
-            command=_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
+            command=record_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
                              None if noise is None else ",".join(f"{v:g}" for v in noise), max_failed,
                              spec.demo_length),
             elapsed_s=elapsed_s,
@@ -421,6 +297,44 @@ def record_dataset(
         if ds_logging is not None and bars_were_on:
             ds_logging.enable_progress_bar()
     return root
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def clean_stale_staging(root: Path) -> tuple[list[Path], list[Path]]:
+    """Remove the staging folders that killed recordings left beside ``root``; returns ``(removed, unknown)``.
+
+    A recording stages its dataset in ``.<root name>.<pid>.<random>.tmp`` next to ``root`` and removes it when
+    it ends; a process killed outright (SIGKILL) cannot, so the next recording of ``root`` removes every such
+    folder whose recording process is gone and says so in one line. A folder of that name without a pid
+    (staged by an older version) is left alone and named in the line, to be removed by hand.
+    """
+    prefix = f".{root.name}."
+    removed, unknown = [], []
+    for folder in sorted(root.parent.glob(glob.escape(prefix) + "*.tmp")):
+        owner = folder.name[len(prefix):].split(".", 1)[0]
+        if not folder.is_dir():
+            continue
+        if not owner.isdigit():
+            unknown.append(folder)
+        elif not _pid_alive(int(owner)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    if removed:
+        print(f"removed {len(removed)} staging folder(s) of killed recordings of {root}: "
+              f"{[f.name for f in removed]}", file=sys.stderr)
+    if unknown:
+        print(f"staging folder(s) of an older recorder beside {root}, remove them by hand if no recording runs: "
+              f"{[f.name for f in unknown]}", file=sys.stderr)
+    return removed, unknown
 
 
 def _remove_empty_dirs(folder: Path) -> None:

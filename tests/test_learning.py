@@ -26,7 +26,7 @@ def success_rate(ckpt: Path, episodes: int, seed: int) -> float:
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_cnmp.api import load_pretrained
-    from lerobot_cnmp.sims.configs import CNMPObstacle2DEnv
+    from lerobot_cnmp.sims.obstacle2d.config import CNMPObstacle2DEnv
 
     policy, pre, post = load_pretrained(ckpt)
     env, env_pre, env_post = make_sim(CNMPObstacle2DEnv(conditions="random", render_mode=None), policy, 10)

@@ -13,8 +13,9 @@ import pytest
 pytest.importorskip("metaworld")
 
 import lerobot_cnmp.sims  # noqa: E402,F401
-from lerobot_cnmp.sims.configs import CNMPMetaWorldEnv  # noqa: E402
-from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv, v3_task_names  # noqa: E402
+from lerobot_cnmp.sims.metaworld.config import CNMPMetaWorldEnv  # noqa: E402
+from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv  # noqa: E402
+from lerobot_cnmp.sims.metaworld.task import v3_task_names  # noqa: E402
 from lerobot_cnmp.sims.metaworld.expert import MetaWorldExpert, expert_policy_name  # noqa: E402
 
 

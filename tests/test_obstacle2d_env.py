@@ -13,19 +13,15 @@ import pytest
 
 import lerobot_cnmp.sims  # noqa: F401  (registers the gym id and the EnvConfig)
 from lerobot_cnmp.execution.conditions import Condition, conditions_from_vector
-from lerobot_cnmp.sims.configs import CNMPObstacle2DEnv
-from lerobot_cnmp.sims.obstacle2d.env import (
-    AGENT_RADIUS,
+from lerobot_cnmp.sims.obstacle2d.config import CNMPObstacle2DEnv
+from lerobot_cnmp.sims.obstacle2d.env import Obstacle2DEnv
+from lerobot_cnmp.sims.obstacle2d.model import AGENT_RADIUS, HOLD_STEPS, OBSTACLE_CENTER, OBSTACLE_RADIUS, PUSH_DISTANCE
+from lerobot_cnmp.sims.obstacle2d.task import (
     CONDITION_CHOICES,
     ENV_STATE_DIM,
     H_RANGE,
-    HOLD_STEPS,
-    OBSTACLE_CENTER,
-    OBSTACLE_RADIUS,
     P_RANGE,
-    PUSH_DISTANCE,
     Y0_RANGE,
-    Obstacle2DEnv,
     Obstacle2DTask,
 )
 from lerobot_cnmp.sims.obstacle2d.expert import Obstacle2DExpert
@@ -267,7 +263,7 @@ def test_gym_make_and_lerobot_make_env():
 # --- the shared family, the new pushes and the rate-limited actuator (issue 16) --------------------------
 
 def test_shared_family_modes_share_start_and_goal_and_keep_clearance():
-    from lerobot_cnmp.sims.obstacle2d.env import SHARED_Y0_RANGE
+    from lerobot_cnmp.sims.obstacle2d.task import SHARED_Y0_RANGE
 
     rng = np.random.default_rng(0)
     tau = np.linspace(0.0, 1.0, 2001)
@@ -318,7 +314,7 @@ def test_shared_family_rejects_the_paper_sets():
 
 @pytest.mark.parametrize("perturbation", ["push_toward", "push_random"])
 def test_new_pushes(perturbation):
-    from lerobot_cnmp.sims.obstacle2d.env import PUSH_MIN_CLEARANCE
+    from lerobot_cnmp.sims.obstacle2d.model import PUSH_MIN_CLEARANCE
 
     base = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
     env = Obstacle2DEnv(conditions="random", perturbation=perturbation, terminate_on_success=False, render_mode=None)
@@ -342,7 +338,7 @@ def test_new_pushes(perturbation):
 
 
 def test_rate_limited_actuator_lags_and_open_loop_falls_behind():
-    from lerobot_cnmp.sims.obstacle2d.env import CONTROL_FPS, RATE_LIMIT
+    from lerobot_cnmp.sims.obstacle2d.model import CONTROL_FPS, RATE_LIMIT
 
     servo = Obstacle2DEnv(conditions="random", terminate_on_success=False, render_mode=None)
     lagging = Obstacle2DEnv(conditions="random", actuator="rate_limited", terminate_on_success=False, render_mode=None)

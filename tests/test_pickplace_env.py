@@ -10,20 +10,18 @@ import mujoco
 import numpy as np
 import pytest
 
-from lerobot_cnmp.sims.pickplace.env import (
+from lerobot_cnmp.sims.pickplace.env import PickPlaceEnv
+from lerobot_cnmp.sims.pickplace.kinematics import home_configuration, reference_trajectory
+from lerobot_cnmp.sims.pickplace.model import TARGET_HALF, TARGET_XY
+from lerobot_cnmp.sims.pickplace.planner import (
     PAPER_EXTRAPOLATION,
     PAPER_INTERPOLATION,
     PAPER_TRAIN_GRID,
     PHASE_STEPS,
-    TARGET_HALF,
-    TARGET_XY,
     TRAIN_OBJECT_RANGE,
     TRAIN_OBSTACLE_RANGE,
-    PickPlaceEnv,
     grasp_height,
-    home_configuration,
     is_extrapolation,
-    reference_trajectory,
 )
 from lerobot_cnmp.sims.pickplace.expert import PickPlaceExpert
 

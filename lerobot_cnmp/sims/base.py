@@ -1,18 +1,10 @@
-"""What the CNMP MuJoCo sims share: the episode options, the end of a step, rendering, contact queries and
-the minimum-jerk time law of their planners."""
+"""What the CNMP MuJoCo sims share: the episode options, the end of a step, rendering and contact queries."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 import mujoco
 import numpy as np
-
-
-def minimum_jerk(u):
-    """The minimum-jerk time law ``10 u^3 - 15 u^4 + 6 u^5`` of ``u`` clipped to [0, 1]: 0 -> 1 with zero
-    velocity and acceleration at both ends."""
-    u = np.clip(u, 0.0, 1.0)
-    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
 
 
 def contacts_with(data, gid: int) -> np.ndarray:

@@ -25,32 +25,14 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-GAMMA_DIM = 6  # object xyz, goal xyz
-STATE_DIM = 4  # hand xyz, gripper
-DEFAULT_TASK = "reach-v3"
-CONTROL_FPS = 80  # MetaWorld: frame_skip 5 x 2.5 ms
-
-
-def _metaworld():
-    try:
-        import metaworld
-    except ImportError as e:  # pragma: no cover - depends on the install
-        raise ImportError(
-            "the cnmp_metaworld env needs MetaWorld: pip install 'lerobot_policy_cnmp[metaworld]' "
-            "(metaworld==3.0.0, which works with the pinned mujoco<3.17)"
-        ) from e
-    return metaworld
-
-
-def v3_task_names() -> list[str]:
-    return sorted(_metaworld().ALL_V3_ENVIRONMENTS)
-
-
-def check_task(task: str) -> str:
-    names = v3_task_names()
-    if task not in names:
-        raise ValueError(f"unknown MetaWorld task {task!r}; the v3 tasks are {names}")
-    return task
+from lerobot_cnmp.sims.metaworld.task import (  # noqa: E402
+    CONTROL_FPS,
+    DEFAULT_TASK,
+    GAMMA_DIM,
+    STATE_DIM,
+    import_metaworld,
+    check_task,
+)
 
 
 class MetaWorldEnv(gym.Env):
@@ -70,7 +52,7 @@ class MetaWorldEnv(gym.Env):
                  terminate_on_success: bool = True, max_episode_steps: int | None = None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"unknown render_mode {render_mode!r}; choose 'rgb_array' or None")
-        metaworld = _metaworld()
+        metaworld = import_metaworld()
         self.task_name = check_task(task)
         mt = metaworld.MT1(self.task_name, seed=0)
         self._mw = mt.train_classes[self.task_name](render_mode=render_mode, width=render_size, height=render_size)

@@ -11,7 +11,7 @@ a hidden reference trajectory of the family (its start is the reset state, its e
 conditions taken from it; the conditions are the only task information in the observation
 (``environment_state``, encoded with :func:`lerobot_cnmp.execution.conditions.encode_conditions`).
 
-Task families (``family``): ``mirrored`` (the above; the modes start and end at mirrored heights, so a start or
+Task families (``family``, :mod:`lerobot_cnmp.sims.obstacle2d.task`): ``mirrored`` (the above; the modes start and end at mirrored heights, so a start or
 goal alone names the mode) or ``shared`` (the paper's setting: both modes start at (0, y0) and end at (1, y0)
 with the same ``y0 in [-0.1, 0.1]``, ``h in s*[0.45, 0.65]``; a method that averages the modes goes through
 the obstacle).
@@ -31,233 +31,40 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from dataclasses import dataclass  # noqa: E402
-
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
-
 from lerobot_cnmp.execution.conditions import Condition, encode_conditions  # noqa: E402
+from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.sims.obstacle2d.model import (  # noqa: E402
+    ACTION_HIGH,
+    ACTION_LOW,
+    ACTUATOR_CHOICES,
+    AGENT_RADIUS,
+    CONTROL_FPS,
+    HOLD_STEPS,
+    MJCF,
+    N_SUBSTEPS,
+    OBSTACLE_CENTER,
+    OBSTACLE_RADIUS,
+    PERTURB_STEP_RANGE,
+    PERTURBATION_CHOICES,
+    PUSH_DISTANCE,
+    PUSH_MIN_CLEARANCE,
+    RATE_LIMIT,
+)
+from lerobot_cnmp.sims.obstacle2d.task import (  # noqa: E402
+    CONDITION_CHOICES,
+    ENV_STATE_DIM,
+    MAX_CONDITIONS,
+    SM_DIM,
+    Obstacle2DTask,
+    check_family,
+    sample_episode,
+)
 
-# --- constants of the sim ------------------------------------------------------------------------------
-SM_DIM = 2
-MAX_CONDITIONS = 4
-ENV_STATE_DIM = MAX_CONDITIONS * (2 + 2 * SM_DIM)  # 24
-OBSTACLE_CENTER = np.array([0.5, 0.0])
-OBSTACLE_RADIUS = 0.2
-AGENT_RADIUS = 0.03
 SUCCESS_TOL = 0.05
-N_SUBSTEPS = 10  # physics steps (dt = 0.002) per control step -> 50 Hz control
-CONTROL_FPS = 50
-ACTION_LOW = np.array([-0.3, -0.8], dtype=np.float32)
-ACTION_HIGH = np.array([1.3, 0.8], dtype=np.float32)
-DEFAULT_MAX_EPISODE_STEPS = 300
-PUSH_DISTANCE = 0.12
-PUSH_MIN_CLEARANCE = 0.02  # a push toward the obstacle stops this far from it
-HOLD_STEPS = 30
-PERTURB_STEP_RANGE = (50, 120)  # inclusive
-RATE_LIMIT = 0.08  # m/s, the rate_limited actuator's top speed (the demos move at up to ~0.5 m/s)
-
-# Task family bounds (for mode +1; mode -1 mirrors y0 and h).
-Y0_RANGE = (0.1, 0.3)
-SHARED_Y0_RANGE = (-0.1, 0.1)  # family 'shared': the start height of both modes
-H_RANGE = (0.45, 0.65)
-P_RANGE = (0.9, 1.6)
-
-CONDITION_CHOICES = ("mixed", "paper_via", "paper_early", "paper_end", "random", "start_goal", "start_goal_early")
-PAPER_CONDITION_CHOICES = ("mixed", "paper_via", "paper_early", "paper_end")  # the mirrored family only
-PERTURBATION_CHOICES = ("none", "push", "push_toward", "push_random", "hold")
-FAMILY_CHOICES = ("mirrored", "shared")
-ACTUATOR_CHOICES = ("servo", "rate_limited")
-RANDOM_VARIANTS = ("via", "early", "end", "via+end", "via_y")  # condition sets of ``random``
-MODE_NAMES = {1: "over", -1: "under"}
-
-_KP = 2500.0
-_KV = 2.0 * np.sqrt(_KP * 1.0)  # critical damping for mass 1
-
-MJCF = f"""
-<mujoco model="cnmp_obstacle2d">
-  <option timestep="0.002" gravity="0 0 0" integrator="implicitfast"/>
-  <visual>
-    <global offwidth="1024" offheight="1024"/>
-    <headlight ambient="0.5 0.5 0.5" diffuse="0.5 0.5 0.5"/>
-  </visual>
-  <asset>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.92 0.92 0.92" rgb2="0.85 0.85 0.85"
-             width="256" height="256"/>
-    <material name="grid" texture="grid" texrepeat="8 8"/>
-  </asset>
-  <worldbody>
-    <camera name="top" pos="0.5 0 2.0" xyaxes="1 0 0 0 1 0" fovy="45"/>
-    <geom name="floor" type="plane" pos="0.5 0 -0.06" size="1.5 1.5 0.01" material="grid"
-          contype="0" conaffinity="0"/>
-    <geom name="obstacle" type="cylinder" pos="{OBSTACLE_CENTER[0]} {OBSTACLE_CENTER[1]} 0"
-          size="{OBSTACLE_RADIUS} 0.05" rgba="0.8 0.25 0.2 1" contype="1" conaffinity="1"/>
-    <body name="agent" pos="0 0 0">
-      <joint name="x" type="slide" axis="1 0 0"/>
-      <joint name="y" type="slide" axis="0 1 0"/>
-      <geom name="agent" type="sphere" size="{AGENT_RADIUS}" mass="1" rgba="0.15 0.35 0.9 1"
-            contype="1" conaffinity="1"/>
-    </body>
-    <site name="goal" type="sphere" pos="1 0 0.06" size="0.035" rgba="0.1 0.75 0.2 0.7"/>
-    <site name="cond0" type="box" pos="0 0 0.07" size="0.025 0.025 0.002" rgba="0 0 0 0"/>
-    <site name="cond1" type="box" pos="0 0 0.07" size="0.025 0.025 0.002" rgba="0 0 0 0"/>
-    <site name="cond2" type="box" pos="0 0 0.07" size="0.025 0.025 0.002" rgba="0 0 0 0"/>
-    <site name="cond3" type="box" pos="0 0 0.07" size="0.025 0.025 0.002" rgba="0 0 0 0"/>
-  </worldbody>
-  <actuator>
-    <position name="ax" joint="x" kp="{_KP}" kv="{_KV}" ctrllimited="true"
-              ctrlrange="{ACTION_LOW[0]} {ACTION_HIGH[0]}"/>
-    <position name="ay" joint="y" kp="{_KP}" kv="{_KV}" ctrllimited="true"
-              ctrlrange="{ACTION_LOW[1]} {ACTION_HIGH[1]}"/>
-  </actuator>
-</mujoco>
-"""
-
-
-@dataclass(frozen=True)
-class Obstacle2DTask:
-    """One member of the task family: the hidden reference trajectory of an episode."""
-
-    mode: int  # +1 over the obstacle, -1 under
-    y0: float
-    h: float
-    p: float
-
-    def position(self, tau):
-        """Reference position at phase ``tau`` (scalar or array, clipped to [0, 1]) -> ``[..., 2]``."""
-        tau = np.clip(np.asarray(tau, dtype=np.float64), 0.0, 1.0)
-        y = self.y0 + (self.h - self.y0) * np.sin(np.pi * tau) ** self.p
-        return np.stack([tau, y], axis=-1)
-
-    @property
-    def start(self) -> np.ndarray:
-        return np.array([0.0, self.y0])
-
-    @property
-    def goal(self) -> np.ndarray:
-        return np.array([1.0, self.y0])
-
-    @property
-    def mode_name(self) -> str:
-        return MODE_NAMES[self.mode]
-
-    @classmethod
-    def sample(cls, rng: np.random.Generator, mode: int | None = None, family: str = "mirrored") -> Obstacle2DTask:
-        if family not in FAMILY_CHOICES:
-            raise ValueError(f"unknown family {family!r}; choose one of {list(FAMILY_CHOICES)}")
-        if mode is None:
-            mode = int(rng.choice([1, -1]))
-        y0 = rng.uniform(*Y0_RANGE)
-        h = rng.uniform(*H_RANGE)
-        p = rng.uniform(*P_RANGE)
-        if family == "shared":  # the same start (and goal) height range for both modes
-            return cls(mode=mode, y0=float(SHARED_Y0_RANGE[0] + (SHARED_Y0_RANGE[1] - SHARED_Y0_RANGE[0])
-                                           * (y0 - Y0_RANGE[0]) / (Y0_RANGE[1] - Y0_RANGE[0])),
-                       h=float(mode * h), p=float(p))
-        return cls(mode=mode, y0=float(mode * y0), h=float(mode * h), p=float(p))
-
-
-def _check_mode(mode) -> int | None:
-    if mode is None:
-        return None
-    if mode in ("over", "under"):
-        return 1 if mode == "over" else -1
-    if mode not in (1, -1):
-        raise ValueError(f"mode must be +1 ('over'), -1 ('under') or None, got {mode!r}")
-    return int(mode)
-
-
-def _check_family(family: str, conditions: str) -> None:
-    if family not in FAMILY_CHOICES:
-        raise ValueError(f"unknown family {family!r}; choose one of {list(FAMILY_CHOICES)}")
-    if family == "shared" and conditions in PAPER_CONDITION_CHOICES:
-        raise ValueError(f"conditions {conditions!r} are the paper's sets of the 'mirrored' family; with family "
-                         f"'shared' choose one of {[c for c in CONDITION_CHOICES if c not in PAPER_CONDITION_CHOICES]}")
-
-
-PAPER_CONDITIONS: dict[str, list[Condition]] = {
-    # Sec. IV-A / Fig. 4: a via-point that selects the mode, an early point, an end point.
-    "paper_via": [Condition(0.5, (0.5, 0.55))],
-    "paper_early": [Condition(0.2, (0.2, -0.37))],
-    "paper_end": [Condition(1.0, (1.0, 0.13))],
-}
-
-
-def _point(task: Obstacle2DTask, t: float, dims=None) -> Condition:
-    xy = task.position(t)
-    return Condition(float(t), (float(xy[0]), float(xy[1])), dims)
-
-
-def sample_episode(
-    rng: np.random.Generator, conditions: str, mode: int | None = None, family: str = "mirrored"
-) -> tuple[Obstacle2DTask, list[Condition], str]:
-    """Draw ``(task, conditions, kind)`` for one episode.
-
-    ``kind`` names the concrete condition set: ``paper_via``, ``paper_early``, ``paper_end`` or
-    ``random/<variant>`` with variant in :data:`RANDOM_VARIANTS`. ``mode`` (+1 / -1) forces the avoidance
-    mode (for ``mixed``, only the compatible condition sets are drawn). ``start_goal``: the start (phase 0)
-    and the goal (phase 1); ``start_goal_early``: those and the reference point at a phase drawn in
-    [0.15, 0.3], which names the mode in either family. ``family``: see :class:`Obstacle2DEnv`; the
-    paper's condition sets (and ``mixed``) exist for the ``mirrored`` family only.
-    """
-    if conditions not in CONDITION_CHOICES:
-        raise ValueError(f"unknown conditions {conditions!r}; choose one of {list(CONDITION_CHOICES)}")
-    _check_family(family, conditions)
-    mode = _check_mode(mode)
-    if conditions in ("start_goal", "start_goal_early"):
-        task = Obstacle2DTask.sample(rng, mode, family)
-        conds = [_point(task, 0.0), _point(task, 1.0)]
-        if conditions == "start_goal_early":
-            conds.append(_point(task, rng.uniform(0.15, 0.3)))
-        return task, conds, conditions
-    kind = conditions
-    if kind == "mixed":
-        kinds = ["paper_via", "paper_early", "paper_end", "random"]
-        if mode is not None:  # keep only the kinds compatible with the requested mode
-            kinds = [k for k in kinds if k == "random" or (k == "paper_early") == (mode == -1)]
-        kind = str(kinds[int(rng.integers(len(kinds)))])
-    fixed_mode = {"paper_via": 1, "paper_end": 1, "paper_early": -1}.get(kind)
-    if fixed_mode is not None and mode is not None and mode != fixed_mode:
-        raise ValueError(f"conditions {kind!r} are only defined for mode {fixed_mode:+d}, got mode {mode:+d}")
-
-    if kind == "paper_via":
-        base = Obstacle2DTask.sample(rng, 1)
-        task = Obstacle2DTask(1, base.y0, PAPER_CONDITIONS[kind][0].values[1], base.p)
-        return task, PAPER_CONDITIONS[kind], kind
-    if kind == "paper_end":
-        base = Obstacle2DTask.sample(rng, 1)
-        task = Obstacle2DTask(1, 0.13, base.h, base.p)
-        return task, PAPER_CONDITIONS[kind], kind
-    if kind == "paper_early":
-        s = np.sin(np.pi * 0.2)
-        for _ in range(100_000):
-            base = Obstacle2DTask.sample(rng, -1)
-            r = (-0.37 - base.y0) / (base.h - base.y0)
-            if not 0.0 < r < 1.0:
-                continue
-            p = float(np.log(r) / np.log(s))
-            if P_RANGE[0] <= p <= P_RANGE[1]:
-                task = Obstacle2DTask(-1, base.y0, base.h, p)
-                return task, PAPER_CONDITIONS[kind], kind
-        raise RuntimeError("could not sample a task through the paper_early condition")  # pragma: no cover
-    # random
-    task = Obstacle2DTask.sample(rng, mode, family)
-    variant = RANDOM_VARIANTS[int(rng.integers(len(RANDOM_VARIANTS)))]
-    if variant == "via":
-        conds = [_point(task, rng.uniform(0.35, 0.65))]
-    elif variant == "early":
-        conds = [_point(task, rng.uniform(0.1, 0.3))]
-    elif variant == "end":
-        conds = [_point(task, 1.0)]
-    elif variant == "via+end":
-        conds = [_point(task, rng.uniform(0.35, 0.65)), _point(task, 1.0)]
-    else:  # via_y: a via point constraining y only
-        conds = [_point(task, rng.uniform(0.4, 0.6), dims=(1,))]
-    kind = f"random/{variant}"
-    return task, conds, kind
 
 
 class Obstacle2DEnv(MujocoSimEnv):
@@ -304,7 +111,7 @@ class Obstacle2DEnv(MujocoSimEnv):
             raise ValueError(
                 f"unknown perturbation {perturbation!r}; choose one of {list(PERTURBATION_CHOICES)}"
             )
-        _check_family(family, conditions)
+        check_family(family, conditions)
         if actuator not in ACTUATOR_CHOICES:
             raise ValueError(f"unknown actuator {actuator!r}; choose one of {list(ACTUATOR_CHOICES)}")
         self.conditions_mode = conditions

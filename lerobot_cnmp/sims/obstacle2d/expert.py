@@ -6,7 +6,7 @@ from lerobot_cnmp.sims.path import PathExpert
 
 
 class Obstacle2DExpert(PathExpert):
-    """Commands the episode's reference (:class:`~lerobot_cnmp.sims.obstacle2d.env.Obstacle2DTask`) at each
+    """Commands the episode's reference (:class:`~lerobot_cnmp.sims.obstacle2d.task.Obstacle2DTask`) at each
     step's own phase, over 200 steps by default; see :class:`PathExpert`."""
 
     default_demo_length = 200

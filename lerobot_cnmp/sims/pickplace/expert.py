@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_cnmp.sims.pickplace.env import reference_trajectory
+from lerobot_cnmp.sims.pickplace.kinematics import reference_trajectory
 
 
 class PickPlaceExpert:
-    """Commands :func:`~lerobot_cnmp.sims.pickplace.env.reference_trajectory` of the episode's task parameters.
+    """Commands :func:`~lerobot_cnmp.sims.pickplace.kinematics.reference_trajectory` of the episode's task parameters.
 
     At step ``k`` the action is the reference's row ``min(k, T - 1)``: six joint targets (rad) and the
     gripper command in [0, 1]. The reference is planned in Cartesian space (home -> above the object ->

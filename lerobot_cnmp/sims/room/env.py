@@ -46,260 +46,45 @@ collision terminates the episode as a failure.
 
 from __future__ import annotations
 
-import functools
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from dataclasses import dataclass  # noqa: E402
-
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.interpolate import PchipInterpolator  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
 from lerobot_cnmp.execution.conditions import Condition, encode_conditions  # noqa: E402
-from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with, minimum_jerk  # noqa: E402
+from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.sims.room.model import (  # noqa: E402
+    ACTION_HIGH,
+    ACTION_LOW,
+    AGENT_RADIUS,
+    CONTROL_FPS,
+    DEFAULT_IMAGE_SIZE,
+    ENV_STATE_DIM,
+    MAX_CONDITIONS,
+    MAX_IMAGE_SIZE,
+    MJCF,
+    N_SUBSTEPS,
+    OBSTACLE_GEOMS,
+    OBSTACLE_HALF_HEIGHT,
+    SM_DIM,
+    WALL_GEOMS,
+)
+from lerobot_cnmp.sims.room.planner import distance_to_obstacles  # noqa: E402
+from lerobot_cnmp.sims.room.task import (  # noqa: E402
+    CONDITION_CHOICES,
+    VIA_PHASE_RANGE,
+    RoomTask,
+    episode_conditions,
+)
 
-# --- constants of the sim ------------------------------------------------------------------------------
-SM_DIM = 2
-MAX_CONDITIONS = 3
-ENV_STATE_DIM = MAX_CONDITIONS * (2 + 2 * SM_DIM)  # 18
-AGENT_RADIUS = 0.02
-WALL_THICKNESS = 0.05  # walls lie outside the room square [0, 1]^2
-OBSTACLE_HALF_HEIGHT = 0.05  # z half-extent of walls and obstacles
-N_SUBSTEPS = 10  # physics steps (dt = 0.002) per control step -> 50 Hz control
-CONTROL_FPS = 50
-DEMO_LENGTH = 100
-DEFAULT_MAX_EPISODE_STEPS = 150
-DEFAULT_IMAGE_SIZE = 64
-MAX_IMAGE_SIZE = 1024  # the offscreen buffer's side
-ACTION_LOW = np.array([0.0, 0.0], dtype=np.float32)
-ACTION_HIGH = np.array([1.0, 1.0], dtype=np.float32)
 SUCCESS_TOL = 0.05
 RIGHT_SIDE_X = 0.85  # "on the right side" without an end condition
 REST_SPEED = 0.05  # m/s: at rest below this speed
 
-# Room family (see the module docstring).
-LEFT_X_RANGE = (0.25, 0.45)
-RIGHT_X_RANGE = (0.55, 0.75)
-WIDTH_RANGE = (0.06, 0.14)
-LENGTH_RANGE = (0.35, 0.6)
-START_X_RANGE = (0.05, 0.12)
-END_X_RANGE = (0.88, 0.95)
-Y_RANGE = (0.1, 0.9)  # of the start and the end
 
-# Planner.
-MARGIN = 0.05  # x offset of the gap waypoints from the obstacle's faces
-MIN_TRANSITION_DX = 0.02  # the least x distance between consecutive waypoints of a valid plan
-MIN_CLEARANCE = AGENT_RADIUS + 0.03  # least distance of the planned path to obstacles and walls
-PATH_SAMPLES = 4001  # dense samples of y(x) for the arc length and the clearance check
-MAX_SAMPLE_TRIES = 1000
-
-CONDITION_CHOICES = ("start_end", "via_end", "via")
-VIA_PHASE_RANGE = (0.3, 0.7)
-WALLS = ("bottom", "top")
-
-# Position servos, critically damped for mass 1. Stiffer than obstacle2d's (kp 2500): the demos are
-# faster (100 steps for paths up to ~2.4 m long, peak ~2.2 m/s), and the lag of a critically damped
-# servo, 2 v / omega, would otherwise reach ~9 cm along the path.
-_KP = 10000.0
-_KV = 2.0 * np.sqrt(_KP * 1.0)
-
-_WALL_GEOMS = ("wall_left", "wall_right", "wall_bottom", "wall_top")
-_OBSTACLE_GEOMS = ("obstacle0", "obstacle1")
-_H, _L, _Z = WALL_THICKNESS / 2, 0.5 + WALL_THICKNESS, OBSTACLE_HALF_HEIGHT  # wall box half-sizes
-
-MJCF = f"""
-<mujoco model="cnmp_room">
-  <option timestep="0.002" gravity="0 0 0" integrator="implicitfast"/>
-  <visual>
-    <global offwidth="{MAX_IMAGE_SIZE}" offheight="{MAX_IMAGE_SIZE}"/>
-    <headlight ambient="0.5 0.5 0.5" diffuse="0.5 0.5 0.5" specular="0 0 0"/>
-  </visual>
-  <asset>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.92 0.92 0.92" rgb2="0.85 0.85 0.85"
-             width="256" height="256"/>
-    <material name="grid" texture="grid" texrepeat="8 8"/>
-  </asset>
-  <worldbody>
-    <!-- "top": the image observation, exactly the room square (orthographic: fovy is the height in m) -->
-    <camera name="top" pos="0.5 0.5 1.0" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="1.0"/>
-    <!-- "view": the colour render for videos, walls included -->
-    <camera name="view" pos="0.5 0.5 1.0" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="1.16"/>
-    <geom name="floor" type="plane" pos="0.5 0.5 -0.06" size="0.6 0.6 0.01" material="grid"
-          contype="0" conaffinity="0" group="1"/>
-    <geom name="wall_left" type="box" pos="{-_H} 0.5 0" size="{_H} {_L} {_Z}" rgba="0.3 0.3 0.3 1"/>
-    <geom name="wall_right" type="box" pos="{1 + _H} 0.5 0" size="{_H} {_L} {_Z}" rgba="0.3 0.3 0.3 1"/>
-    <geom name="wall_bottom" type="box" pos="0.5 {-_H} 0" size="{_L} {_H} {_Z}" rgba="0.3 0.3 0.3 1"/>
-    <geom name="wall_top" type="box" pos="0.5 {1 + _H} 0" size="{_L} {_H} {_Z}" rgba="0.3 0.3 0.3 1"/>
-    <!-- placed and sized per episode (RoomEnv._place_obstacles); each in a static body of its own, so
-         that its collision bounding volumes are its own geom's and can follow its size -->
-    <body name="obstacle0" pos="0.35 0.25 0">
-      <geom name="obstacle0" type="box" size="0.05 0.25 {_Z}" rgba="0.8 0.25 0.2 1"/>
-    </body>
-    <body name="obstacle1" pos="0.65 0.75 0">
-      <geom name="obstacle1" type="box" size="0.05 0.25 {_Z}" rgba="0.8 0.25 0.2 1"/>
-    </body>
-    <body name="agent" pos="0 0 0">
-      <joint name="x" type="slide" axis="1 0 0"/>
-      <joint name="y" type="slide" axis="0 1 0"/>
-      <geom name="agent" type="sphere" size="{AGENT_RADIUS}" mass="1" rgba="0.15 0.35 0.9 1" group="2"/>
-    </body>
-    <site name="end" type="sphere" pos="1 0.5 0.06" size="0.03" rgba="0.1 0.75 0.2 0.6"/>
-    <site name="cond0" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
-    <site name="cond1" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
-    <site name="cond2" type="box" pos="0 0 0.07" size="0.02 0.02 0.002" rgba="0 0 0 0"/>
-  </worldbody>
-  <actuator>
-    <position name="ax" joint="x" kp="{_KP}" kv="{_KV}" ctrllimited="true"
-              ctrlrange="{ACTION_LOW[0]} {ACTION_HIGH[0]}"/>
-    <position name="ay" joint="y" kp="{_KP}" kv="{_KV}" ctrllimited="true"
-              ctrlrange="{ACTION_LOW[1]} {ACTION_HIGH[1]}"/>
-  </actuator>
-</mujoco>
-"""
-
-
-# --- the room family -----------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Obstacle:
-    """A rectangle attached to the bottom or the top wall, reaching ``length`` into the room."""
-
-    x: float  # centre
-    width: float
-    length: float
-    wall: str  # "bottom" or "top"
-
-    @property
-    def rect(self) -> tuple[float, float, float, float]:
-        """``(x_min, x_max, y_min, y_max)``."""
-        if self.wall == "bottom":
-            y0, y1 = 0.0, self.length
-        else:
-            y0, y1 = 1.0 - self.length, 1.0
-        return (self.x - self.width / 2, self.x + self.width / 2, y0, y1)
-
-    @property
-    def gap_center(self) -> float:
-        """y of the middle of the gap the obstacle leaves open."""
-        return (1.0 + self.length) / 2 if self.wall == "bottom" else (1.0 - self.length) / 2
-
-
-@dataclass(frozen=True)
-class RoomTask:
-    """One room of the family: the two obstacles (left, right), the start and the end."""
-
-    obstacles: tuple[Obstacle, Obstacle]
-    start: tuple[float, float]
-    end: tuple[float, float]
-
-    @property
-    def layout(self) -> str:
-        """``"bottom-first"`` when the left obstacle hangs from the bottom wall, else ``"top-first"``."""
-        return f"{self.obstacles[0].wall}-first"
-
-    def position(self, tau):
-        """Planned position at phase ``tau`` (scalar or array, clipped to [0, 1]) -> ``[..., 2]``."""
-        return plan_path(self, tau)
-
-    @classmethod
-    def draw(cls, rng: np.random.Generator) -> RoomTask:
-        """One draw of the family's ranges, valid plan or not (:meth:`sample` keeps only valid ones)."""
-        left_wall = WALLS[int(rng.integers(2))]
-        right_wall = "top" if left_wall == "bottom" else "bottom"
-        obstacles = (
-            Obstacle(float(rng.uniform(*LEFT_X_RANGE)), float(rng.uniform(*WIDTH_RANGE)),
-                     float(rng.uniform(*LENGTH_RANGE)), left_wall),
-            Obstacle(float(rng.uniform(*RIGHT_X_RANGE)), float(rng.uniform(*WIDTH_RANGE)),
-                     float(rng.uniform(*LENGTH_RANGE)), right_wall),
-        )
-        start = (float(rng.uniform(*START_X_RANGE)), float(rng.uniform(*Y_RANGE)))
-        end = (float(rng.uniform(*END_X_RANGE)), float(rng.uniform(*Y_RANGE)))
-        return cls(obstacles, start, end)
-
-    @classmethod
-    def sample(cls, rng: np.random.Generator) -> RoomTask:
-        """Draw rooms from ``rng`` until one has a valid plan (:func:`plan_is_valid`)."""
-        for _ in range(MAX_SAMPLE_TRIES):
-            task = cls.draw(rng)
-            if plan_is_valid(task):
-                return task
-        raise RuntimeError(f"no valid room in {MAX_SAMPLE_TRIES} draws")  # pragma: no cover
-
-
-# --- the planner -----------------------------------------------------------------------------------------
-def waypoints(task: RoomTask) -> tuple[np.ndarray, np.ndarray]:
-    """The planner's waypoints ``(x [6], y [6])``: start, each obstacle's gap centre ``MARGIN`` before and
-    after it, end."""
-    xs, ys = [task.start[0]], [task.start[1]]
-    for ob in task.obstacles:
-        x_min, x_max, _, _ = ob.rect
-        xs += [x_min - MARGIN, x_max + MARGIN]
-        ys += [ob.gap_center, ob.gap_center]
-    xs.append(task.end[0])
-    ys.append(task.end[1])
-    return np.array(xs), np.array(ys)
-
-
-@functools.lru_cache(maxsize=64)
-def _path_table(task: RoomTask) -> tuple[np.ndarray, np.ndarray]:
-    """Dense samples of the planned curve, ``(points [N, 2], cumulative arc length [N])``."""
-    xs, ys = waypoints(task)
-    if np.any(np.diff(xs) <= 0):
-        raise ValueError(f"the planner's waypoints are not increasing in x for {task}")
-    x = np.linspace(xs[0], xs[-1], PATH_SAMPLES)
-    pts = np.stack([x, PchipInterpolator(xs, ys)(x)], axis=-1)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=-1))])
-    pts.setflags(write=False)
-    s.setflags(write=False)
-    return pts, s
-
-
-def plan_path(task: RoomTask, phases) -> np.ndarray:
-    """The planned position at ``phases`` (scalar or array in [0, 1], clipped) -> ``[..., 2]``: the PCHIP
-    curve through :func:`waypoints`, at arc length ``L * minimum_jerk(phase)``."""
-    pts, s = _path_table(task)
-    target = s[-1] * minimum_jerk(np.asarray(phases, dtype=np.float64))
-    return np.stack([np.interp(target, s, pts[:, 0]), np.interp(target, s, pts[:, 1])], axis=-1)
-
-
-def distance_to_obstacles(task: RoomTask, points) -> np.ndarray:
-    """Distance of ``points [..., 2]`` to the nearest obstacle or wall (0 inside one)."""
-    p = np.asarray(points, dtype=np.float64)
-    d = np.min(np.stack([p[..., 0], 1.0 - p[..., 0], p[..., 1], 1.0 - p[..., 1]]), axis=0)
-    d = np.maximum(d, 0.0)
-    for ob in task.obstacles:
-        x0, x1, y0, y1 = ob.rect
-        dx = np.maximum(np.maximum(x0 - p[..., 0], p[..., 0] - x1), 0.0)
-        dy = np.maximum(np.maximum(y0 - p[..., 1], p[..., 1] - y1), 0.0)
-        d = np.minimum(d, np.hypot(dx, dy))
-    return d
-
-
-def path_clearance(task: RoomTask) -> float:
-    """Least distance of the planned path (the agent's centre) to an obstacle or a wall."""
-    return float(distance_to_obstacles(task, _path_table(task)[0]).min())
-
-
-def plan_is_valid(task: RoomTask) -> bool:
-    """Waypoints at least :data:`MIN_TRANSITION_DX` apart in x and a path clearance of at least
-    :data:`MIN_CLEARANCE`."""
-    xs, _ = waypoints(task)
-    if np.diff(xs).min() < MIN_TRANSITION_DX:
-        return False
-    return path_clearance(task) >= MIN_CLEARANCE
-
-
-def episode_conditions(task: RoomTask, condition: str, via_phase: float) -> list[Condition]:
-    """The conditions of an episode, points of the room's plan (see ``CONDITION_CHOICES``)."""
-    if condition not in CONDITION_CHOICES:
-        raise ValueError(f"unknown condition {condition!r}; choose one of {list(CONDITION_CHOICES)}")
-    phases = {"start_end": [0.0, 1.0], "via_end": [via_phase, 1.0], "via": [via_phase]}[condition]
-    return [Condition(float(t), tuple(float(v) for v in plan_path(task, t))) for t in phases]
-
-
-# --- the env ---------------------------------------------------------------------------------------------
 class RoomEnv(MujocoSimEnv):
     """Point mass crossing a room with two obstacles, seen as a top-down mask; see the module docstring.
 
@@ -345,8 +130,8 @@ class RoomEnv(MujocoSimEnv):
             return mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
 
         self._agent_gid = gid("agent")
-        self._obstacle_gids = [gid(n) for n in _OBSTACLE_GEOMS]
-        self._blocking_gids = frozenset(gid(n) for n in (*_WALL_GEOMS, *_OBSTACLE_GEOMS))
+        self._obstacle_gids = [gid(n) for n in OBSTACLE_GEOMS]
+        self._blocking_gids = frozenset(gid(n) for n in (*WALL_GEOMS, *OBSTACLE_GEOMS))
         self._mask_gids = sorted(self._blocking_gids)
         self._end_sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "end")
         self._cond_sids = [

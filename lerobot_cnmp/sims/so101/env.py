@@ -5,7 +5,8 @@ A thin wrapper: the physics, the IK, the task, its randomization and its success
 ``SO101PickPlaceGymEnv`` (gym id ``lerobot_env_so101/SO101PickPlace-v0``), built here with the plugin's own
 class. What this module adds:
 
-- :class:`CNMPSO101Env`, an ``EnvConfig`` with the features the PickPlace task really has. The plugin's own
+- :class:`~lerobot_cnmp.sims.so101.config.CNMPSO101Env` (in ``config.py``), an ``EnvConfig`` with the features
+  the PickPlace task really has. The plugin's own
   ``--env.type=so101`` config is the pick-only task's: it declares a 3-value ``environment_state`` (PickPlace
   gives 6: block and goal), defaults to ``random_block_position=False`` and to ``action_scale=1.0`` (1 m per
   unit action, while its scripted controllers are calibrated for 0.025).
@@ -51,53 +52,17 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from dataclasses import dataclass, field  # noqa: E402
-
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
-from lerobot.configs import FeatureType, PolicyFeature  # noqa: E402
-from lerobot.envs.configs import EnvConfig  # noqa: E402
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE  # noqa: E402
 
-from lerobot_cnmp.sims.configs import CNMPSimConfig  # noqa: E402
-
-PLUGIN = "lerobot-env-so101"
-PLUGIN_VERSION = "0.4.0"
-SO101_GYM_ID = "cnmp/SO101PickPlace-v0"
-PLUGIN_GYM_ID = "lerobot_env_so101/SO101PickPlace-v0"  # the plugin's own id of the task we wrap
-CONTROL_FPS = 10
-DEFAULT_MAX_EPISODE_STEPS = 300  # the plugin registers SO101PickPlace-v0 with 300 steps
-DEFAULT_ACTION_SCALE = 0.025  # lerobot_env_so101.policy.DEFAULT_ACTION_SCALE, what its controllers assume
-DEFAULT_RENDER_SIZE = 128  # the plugin's GymRenderingSpec default
-CAMERA = "front"
-
-ACTION_NAMES = ["dx", "dy", "dz", "grasp"]
-ARM_JOINT_NAMES = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
-# = lerobot_env_so101.policy.OBS_FIELD_NAMES[:14] (tests/test_so101_env.py checks it)
-AGENT_POS_NAMES = [
-    *(f"qpos_{n}" for n in ARM_JOINT_NAMES),
-    *(f"qvel_{n}" for n in ARM_JOINT_NAMES),
-    "gripper_pose",
-    "ee_x",
-    "ee_y",
-    "ee_z",
-]
-ENV_STATE_NAMES = ["block_x", "block_y", "block_z", "goal_x", "goal_y", "goal_z"]
-TASK_DESCRIPTION = "pick up the cube and place it on the goal position"
-
-
-def _require_plugin():
-    try:
-        import lerobot_env_so101  # noqa: F401
-    except ModuleNotFoundError as e:
-        raise ModuleNotFoundError(
-            f"the cnmp_so101 sim needs the {PLUGIN} plugin: pip install -e \".[so101]\" "
-            f"(or pip install {PLUGIN}=={PLUGIN_VERSION})"
-        ) from e
-    from lerobot_env_so101 import pick_place_env
-
-    return pick_place_env
+from lerobot_cnmp.sims.so101.task import (  # noqa: E402
+    CAMERA,
+    DEFAULT_ACTION_SCALE,
+    DEFAULT_RENDER_SIZE,
+    TASK_DESCRIPTION,
+    require_plugin,
+)
 
 
 class SO101Wrapper(gym.Wrapper):
@@ -183,7 +148,7 @@ def make_so101_pickplace(
     """The entry point of ``cnmp/SO101PickPlace-v0``: the plugin's ``SO101PickPlaceGymEnv`` (state
     observation; top-down IK and jaw pads on, as its own ``SO101PickPlace-v0``) in :class:`SO101Wrapper`.
     ``gym.make`` adds the time limit (300 steps unless ``max_episode_steps`` is given)."""
-    pick_place_env = _require_plugin()
+    pick_place_env = require_plugin()
     from lerobot_env_so101.mujoco_env import GymRenderingSpec
 
     env = pick_place_env.SO101PickPlaceGymEnv(
@@ -194,151 +159,3 @@ def make_so101_pickplace(
         action_scale=float(action_scale),
     )
     return SO101Wrapper(env, terminate_on_success=terminate_on_success, image_obs=image_obs)
-
-
-if SO101_GYM_ID not in gym.registry:
-    gym.register(
-        id=SO101_GYM_ID,
-        entry_point="lerobot_cnmp.sims.so101.env:make_so101_pickplace",
-        max_episode_steps=DEFAULT_MAX_EPISODE_STEPS,
-    )
-
-
-@EnvConfig.register_subclass("cnmp_so101")
-@dataclass
-class CNMPSO101Env(CNMPSimConfig):
-    """The SO-101 arm picking a cube and placing it on a goal, both at random positions (the third-party
-    ``lerobot-env-so101==0.4.0`` plugin's ``SO101PickPlace-v0``, wrapped by :mod:`lerobot_cnmp.sims.so101.env`).
-
-    ``agent_pos`` (14) reaches the policy as ``observation.state``, ``environment_state`` (6: block x, y, z
-    and goal x, y, z, m) as ``observation.environment_state``; the action is ``[dx, dy, dz, grasp]``.
-
-    Fields:
-        task: gymnasium task name (the id is ``cnmp/<task>``).
-        fps: control frequency, Hz (the plugin's 0.1 s control step).
-        episode_length: steps before truncation (the plugin's 300; the scripted expert is done in ~65).
-        random_block_position: draw the block and the goal at each reset (default); False uses the
-            plugin's fixed block (0.25, 0) and goal (0.20, 0.08).
-        action_scale: metres per unit of ``dx, dy, dz`` (0.025, the plugin's controllers' scale; the
-            plugin's own default is 1.0).
-        image_obs: also observe the ``front`` camera as ``pixels/front`` (-> ``observation.images.front``),
-            ``render_size`` square; slow without a GPU (see the module docstring).
-        render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
-    """
-
-    task: str | None = "SO101PickPlace-v0"
-    fps: int = CONTROL_FPS
-    episode_length: int = DEFAULT_MAX_EPISODE_STEPS
-    random_block_position: bool = True
-    action_scale: float = DEFAULT_ACTION_SCALE
-    image_obs: bool = False
-    render_size: int = DEFAULT_RENDER_SIZE
-    features: dict[str, PolicyFeature] = field(
-        default_factory=lambda: {
-            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(ACTION_NAMES),)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(len(AGENT_POS_NAMES),)),
-            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(len(ENV_STATE_NAMES),)),
-        }
-    )
-    features_map: dict[str, str] = field(
-        default_factory=lambda: {
-            ACTION: ACTION,
-            "agent_pos": OBS_STATE,
-            "environment_state": OBS_ENV_STATE,
-            f"pixels/{CAMERA}": f"{OBS_IMAGES}.{CAMERA}",
-        }
-    )
-
-    def __post_init__(self):
-        self._check_choice("task", ("SO101PickPlace-v0",))
-        self._check_common()
-        if not self.action_scale > 0:
-            raise ValueError(f"action_scale must be positive, got {self.action_scale}")
-        # the image feature follows image_obs and render_size
-        if self.image_obs:
-            self.features[f"pixels/{CAMERA}"] = PolicyFeature(
-                type=FeatureType.VISUAL, shape=(self.render_size, self.render_size, 3)
-            )
-        else:
-            self.features.pop(f"pixels/{CAMERA}", None)
-
-    @property
-    def gym_kwargs(self) -> dict:
-        return {
-            "random_block_position": self.random_block_position,
-            "action_scale": float(self.action_scale),
-            "image_obs": self.image_obs,
-            **self._common_gym_kwargs(),
-        }
-
-
-# --- the recorder's entry (``lerobot_cnmp.sims.SIMS["cnmp_so101"]``) -------------------------------------
-DEMO_LENGTH = 80  # 8 s: the expert is done (retreated) within 65 steps for seeds 0-399, then holds still
-DEFAULT_EPISODES = 200
-RECORD_CONDITIONS = "random"
-
-
-def _record_config_kwargs(conditions: str) -> dict:
-    if conditions != RECORD_CONDITIONS:
-        raise ValueError(
-            f"cnmp_so101 records random block and goal positions only (conditions {RECORD_CONDITIONS!r}), "
-            f"got {conditions!r}"
-        )
-    return {}
-
-
-def _episode_label(env) -> str:
-    return "goal ({:.3f}, {:.3f}) m".format(*env.goal_pos[:2])
-
-
-def sim_spec():
-    """The :class:`~lerobot_cnmp.sims.SimSpec` of ``cnmp_so101`` (built on call: ``lerobot_cnmp.sims``
-    defines SimSpec after importing this module)."""
-    from lerobot_cnmp.sims import SimSpec
-    from lerobot_cnmp.sims.so101.expert import SO101PickPlaceExpert
-
-    return SimSpec(
-        env_config_cls=CNMPSO101Env,
-        expert_cls=SO101PickPlaceExpert,
-        demo_length=DEMO_LENGTH,
-        default_episodes=DEFAULT_EPISODES,
-        default_conditions=RECORD_CONDITIONS,
-        feature_names={
-            "action": list(ACTION_NAMES),
-            "agent_pos": list(AGENT_POS_NAMES),
-            "environment_state": list(ENV_STATE_NAMES),
-        },
-        episode_label=_episode_label,
-        config_kwargs=_record_config_kwargs,
-        features_note=(
-            "For this sim the action is not a position-servo target but an increment: `action` is "
-            "`[dx, dy, dz, grasp]`, where dx, dy, dz "
-            f"in [-1, 1] move the IK target of the grasp point between the jaws by {DEFAULT_ACTION_SCALE:g} m "
-            "per unit (world frame: the arm's base at the origin, x forward, z up; the target is clipped to "
-            "x in [0.1, 0.5], y in [-0.3, 0.3], z in [0, 0.4] m, an all-zero delta holds the current pose) "
-            "and grasp in [0, 1] is an absolute jaw command (0 closed, 1 open). `observation.state` is the "
-            "plugin's `agent_pos`: the 5 arm joint angles (rad), their velocities (rad/s), `gripper_pose` "
-            "(the gripper *command* in [-1, 1], -1 closed, +1 open, not the measured jaw) and the position "
-            "(m) of the `gripperframe` site on the fixed jaw (not the grasp point the action moves). "
-            "`observation.environment_state` is the block centre as measured (m; it moves while carried) "
-            "followed by the goal (constant within an episode; goal_z = 0.02 m, the block's half size): the "
-            "episode's block start is block_x, block_y of its first frame."
-        ),
-        description=(
-            f"The SO-101 arm (5 arm joints and a one-joint gripper, all position-servoed; MuJoCo) of the third-party "
-            f"`{PLUGIN}=={PLUGIN_VERSION}` plugin's `SO101PickPlace-v0` task, wrapped by "
-            "`lerobot_cnmp.sims.so101.env` (physics, IK, task, randomization and success rule are the plugin's), "
-            "picks a 4 cm cube from the table and places it on a goal position. At each reset the block (x, "
-            "y) and the goal (x, y) are drawn uniformly from x in [0.15, 0.30] m, y in [-0.10, 0.10] m by "
-            "the env's RNG seeded with the reset seed, the goal redrawn until it is at least 8 cm from the "
-            "block. Control runs at 10 Hz (50 MuJoCo steps of 2 ms per step); the IK keeps the gripper "
-            "pointing straight down. Success (the plugin's `info[\"succeed\"]`, reported by the wrapper as "
-            "`info[\"is_success\"]`): the block was lifted more than 3 cm at some point, its centre rests "
-            "within 3 cm (in x, y) of the goal, the jaw is more than half open and the block moves slower "
-            "than 1 cm/s. The scripted expert is the plugin's `PickPlaceController` (hover over the block, "
-            "descend, close, lift, carry the block over the goal, lower, open, retreat), driven by the grasp "
-            "point, the block and the goal; it succeeds after 4.2 to 5.5 s and has retreated within 6.5 s. "
-            f"Demos are recorded for a fixed {DEMO_LENGTH} steps with the wrapper's termination on success "
-            "turned off (the arm holds still once retreated) and checked to succeed at the last step."
-        ),
-    )

@@ -1,6 +1,6 @@
 """MuJoCo sensorimotor-classification sim: pick a container, place it by shape x weight (CNMP paper, Sec. IV-D).
 
-The UR10-like arm, two-finger gripper, joint servos and IK of :mod:`lerobot_cnmp.sims.pickplace.env` (imported,
+The UR10-like arm, two-finger gripper, joint servos and IK of :mod:`lerobot_cnmp.sims.pickplace` (imported,
 not copied), with a wrist force/torque sensor between the last link (wrist3) and the gripper, pick a
 container from the middle of the table and place it on one of four target zones depending on its shape
 and weight category, as in Seker et al. (RSS 2019, Fig. 9-11). Nothing in the observation names the class:
@@ -73,98 +73,58 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.sims.pickplace import env as pp  # noqa: E402
-from lerobot_cnmp.sims.base import MujocoSimEnv, minimum_jerk  # noqa: E402
+from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.sims.pickplace.control import servo_control_step  # noqa: E402
+from lerobot_cnmp.sims.pickplace.kinematics import home_configuration, ik, kinematic_model  # noqa: E402
+from lerobot_cnmp.sims.pickplace.model import (  # noqa: E402
+    ARM_POS_CTRL,
+    ARM_VEL_CTRL,
+    FINGER_CTRL,
+    FINGER_OPEN,
+    JOINT_LIMITS,
+    JOINT_NAMES,
+    TABLE_TOP,
+)
+from lerobot_cnmp.sims.pickplace.planner import TOOL_ROT  # noqa: E402
+from lerobot_cnmp.sims.time_law import minimum_jerk  # noqa: E402
+from lerobot_cnmp.sims.weights.model import build_model  # noqa: E402
+from lerobot_cnmp.sims.weights.task import (  # noqa: E402
+    CONTROL_FPS,
+    FINGER_SM,
+    PERTURBATION_CHOICES,
+    PICK_XY,
+    POS_SM,
+    SHAPES,
+    SM_DIM,
+    SWITCH_ADDED_MASS,
+    SWITCH_MIN_HEIGHT,
+    SWITCH_WINDOW,
+    TEST_MASSES,
+    WEIGHT_CATEGORIES,
+    ZONE_HALF,
+    ZONE_XY,
+    check_mass,
+    check_shape,
+    target_zone,
+    weight_category,
+)
 
-# --- constants of the sim ------------------------------------------------------------------------------
-CONTROL_FPS = pp.CONTROL_FPS
-DEMO_LENGTH = 200
-DEFAULT_MAX_EPISODE_STEPS = 260
-SM_NAMES = ("x", "y", "z", "finger_left", "finger_right", "fx", "fy", "fz", "tx", "ty", "tz")
-SM_DIM = len(SM_NAMES)
-POS_SM = slice(0, 3)
-FINGER_SM = slice(3, 5)
-FT_SM = slice(5, 11)
-
-# Containers: (name, half width along x and y, half height), metres.
-SHAPES = (("box_4cm", 0.02, 0.03), ("cube_6cm", 0.03, 0.03))
-LIGHT_RANGE = (0.15, 0.35)
-HEAVY_RANGE = (0.65, 0.95)
-HEAVY_THRESHOLD = 0.5  # kg: masses above it are "heavy"
-MASS_LIMITS = (0.05, 1.5)  # what reset accepts, kg
-WEIGHT_CATEGORIES = ("light", "heavy")
-DEMO_MASSES = {"light": (0.15, 0.20, 0.25, 0.30, 0.35), "heavy": (0.65, 0.725, 0.80, 0.875, 0.95)}
-TEST_MASSES = {"light": (0.175, 0.225, 0.275, 0.325), "heavy": (0.6875, 0.7625, 0.8375, 0.9125)}
-
-# Scene.
-PICK_XY = np.array([0.70, -0.20])
-ZONE_ROWS_X = (0.55, 0.85)  # by shape
-ZONE_COLS_Y = (0.15, 0.40)  # by weight category
-ZONE_XY = np.array([[x, y] for x in ZONE_ROWS_X for y in ZONE_COLS_Y])  # zone = 2 * shape + heavy
-ZONE_HALF = 0.06
-ZONE_RGBA = ((0.3, 0.75, 0.35, 0.8), (0.1, 0.45, 0.15, 0.8), (0.35, 0.55, 0.9, 0.8), (0.1, 0.25, 0.65, 0.8))
-CAMERA_EYE = (1.95, -1.15, 1.25)
-CAMERA_TARGET = (0.55, 0.05, 0.22)
 WORKSPACE = np.array([[0.25, 1.05], [-0.60, 0.70], [0.01, 0.60]])  # tool-point target box (x, y, z)
 
 # Gripper controller (see the module docstring).
 SQUEEZE_FULL_BELOW = 0.035  # m: commands below it close fully (until contact)
-FINGER_CMD_RANGE = (0.004, pp.FINGER_OPEN + 0.005)
+FINGER_CMD_RANGE = (0.004, FINGER_OPEN + 0.005)
 
 # Wrist F/T sensor.
 FT_TAU = 0.1  # s, first-order low-pass: the static load (the weight) over the arm's inertial transients
 FT_BOUND = 1.0e3  # the action space's bound for the (ignored) F/T entries
-
-# Weight switch.
-PERTURBATION_CHOICES = ("none", "weight_switch")
-SWITCH_WINDOW = (108, 120)  # steps (inclusive): the nominal transport runs from step 104 to 150
-SWITCH_ADDED_MASS = 0.5  # kg
-SWITCH_MIN_HEIGHT = 0.08  # m: the container's bottom above the table when the mass is added
-
-# Expert plan (metres); the tool point is at GRASP_Z when grasping (container mid-height).
-GRASP_Z = 0.03
-APPROACH_HEIGHT = 0.10  # pre-grasp: this far above the grasp point
-LIFT_HEIGHT = 0.10  # carry with the tool point this far above the grasp height
-PLACE_DROP = 0.01  # release with the container's bottom this high above the table (slip and tracking margin)
-RETREAT = 0.10
-# Phase knots, in control steps of a 200-step demonstration (scaled for other lengths).
-PHASE_STEPS = {
-    "start_approach": 8,
-    "pregrasp": 50,
-    "grasp": 70,
-    "closed": 80,
-    "start_lift": 86,
-    "lifted": 104,
-    "carry_end": 150,
-    "placed": 166,
-    "opened": 176,
-    "start_retreat": 180,
-    "end": 196,
-}
-MIN_REPLAN_STEPS = 25  # shortest move to the new zone after a weight switch (200-step scale)
 
 # Success thresholds.
 LIFT_THRESHOLD = 0.015
 REST_HEIGHT_TOL = 0.005
 REST_SPEED_TOL = 0.05
 UPRIGHT_COS = np.cos(np.deg2rad(15.0))
-RELEASED_OPENING = 0.5 * (SQUEEZE_FULL_BELOW + pp.FINGER_OPEN)  # both fingers beyond this: open
-
-
-# --- classes --------------------------------------------------------------------------------------------
-def weight_category(mass: float) -> int:
-    """0 light, 1 heavy."""
-    return int(float(mass) > HEAVY_THRESHOLD)
-
-
-def target_zone(shape: int, mass: float) -> int:
-    """Index into :data:`ZONE_XY` of the container's class: ``2 * shape + weight_category(mass)``."""
-    return 2 * int(shape) + weight_category(mass)
-
-
-def finger_contact_opening(shape: int) -> float:
-    """Finger joint position (m) at which both pads touch a container of ``shape``."""
-    return float(SHAPES[int(shape)][1])
+RELEASED_OPENING = 0.5 * (SQUEEZE_FULL_BELOW + FINGER_OPEN)  # both fingers beyond this: open
 
 
 def finger_servo_target(command):
@@ -172,97 +132,10 @@ def finger_servo_target(command):
     the pads stop on the container and squeeze it with the force limit) below ``SQUEEZE_FULL_BELOW``, the
     command itself at the open position, blended smoothly in between."""
     c = np.asarray(command, dtype=np.float64)
-    w = 1.0 - minimum_jerk((c - SQUEEZE_FULL_BELOW) / (pp.FINGER_OPEN - SQUEEZE_FULL_BELOW))
+    w = 1.0 - minimum_jerk((c - SQUEEZE_FULL_BELOW) / (FINGER_OPEN - SQUEEZE_FULL_BELOW))
     return c - w * (c - FINGER_CMD_RANGE[0])
 
 
-# --- the expert's plan ----------------------------------------------------------------------------------
-def tcp_plan(shape: int, zone: int, steps, demo_length: int = DEMO_LENGTH):
-    """The demonstrator's Cartesian plan at (possibly fractional) control steps ``steps``: ``(tool-point
-    positions [n, 3], finger opening command [n])`` for a container of ``shape`` going to ``zone``.
-
-    Home -> above the container -> descend -> close the fingers to the container's width -> lift -> carry
-    straight to above the zone -> descend -> open -> retreat up, fixed phase timing (:data:`PHASE_STEPS`,
-    scaled to ``demo_length``), minimum-jerk segments.
-    """
-    T = int(demo_length)
-    if T < 2:
-        raise ValueError(f"demo_length must be >= 2, got {demo_length}")
-    k = np.atleast_1d(np.asarray(steps, dtype=np.float64)) * (199.0 / (T - 1))  # 200-step time
-    P = {n: float(v) for n, v in PHASE_STEPS.items()}
-    pick = np.array([*PICK_XY, GRASP_Z])
-    pre = pick + [0.0, 0.0, APPROACH_HEIGHT]
-    lift = pick + [0.0, 0.0, LIFT_HEIGHT]
-    place = np.array([*ZONE_XY[int(zone)], GRASP_Z + PLACE_DROP])
-    above_place = place + [0.0, 0.0, LIFT_HEIGHT]
-    retreat = place + [0.0, 0.0, RETREAT]
-    home = np.asarray(pp.HOME_TCP, dtype=np.float64)
-    # (start knot, end knot, from, to) in order; each segment holds its end afterwards
-    segments = (
-        ("start_approach", "pregrasp", home, pre),
-        ("pregrasp", "grasp", pre, pick),
-        ("start_lift", "lifted", pick, lift),
-        ("lifted", "carry_end", lift, above_place),
-        ("carry_end", "placed", above_place, place),
-        ("start_retreat", "end", place, retreat),
-    )
-    pos = np.tile(home, (len(k), 1))
-    for k0, k1, a, b in segments:
-        s = minimum_jerk((k - P[k0]) / (P[k1] - P[k0]))[:, None]
-        pos = np.where(k[:, None] >= P[k0], a + s * (b - a), pos)
-    closed = finger_contact_opening(shape)
-    grip = minimum_jerk((k - P["grasp"]) / (P["closed"] - P["grasp"])) - minimum_jerk(
-        (k - P["placed"]) / (P["opened"] - P["placed"])
-    )
-    fingers = pp.FINGER_OPEN + grip * (closed - pp.FINGER_OPEN)
-    return pos, fingers
-
-
-def check_shape(shape) -> int:
-    if isinstance(shape, bool) or not isinstance(shape, (int, np.integer)) or int(shape) not in (0, 1):
-        raise ValueError(f"shape must be 0 ({SHAPES[0][0]}) or 1 ({SHAPES[1][0]}), got {shape!r}")
-    return int(shape)
-
-
-def check_mass(mass) -> float:
-    try:
-        m = float(mass)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"mass must be a number of kg, got {mass!r}") from err
-    if not (np.isfinite(m) and MASS_LIMITS[0] <= m <= MASS_LIMITS[1]):
-        raise ValueError(f"mass {mass!r} kg outside the sim's range [{MASS_LIMITS[0]}, {MASS_LIMITS[1]}] kg")
-    return m
-
-
-# --- the model ------------------------------------------------------------------------------------------
-def build_model() -> mujoco.MjModel:
-    """The pickplace scene without its wall and target, with the F/T site and sensors, coupled fingers and the
-    four zones."""
-    spec = mujoco.MjSpec.from_string(pp.MJCF)
-    spec.modelname = "cnmp_weights_ur10"
-    spec.delete(spec.geom("wall"))
-    spec.delete(spec.site("target"))
-    spec.delete(spec.site("pick"))
-    spec.body("gripper").add_site(name="ft", pos=[0.0, 0.0, 0.0], size=[0.008, 0.0, 0.0], rgba=[0.9, 0.1, 0.1, 0.6])
-    for name, kind in (("ft_force", mujoco.mjtSensor.mjSENS_FORCE), ("ft_torque", mujoco.mjtSensor.mjSENS_TORQUE)):
-        spec.add_sensor(name=name, type=kind, objtype=mujoco.mjtObj.mjOBJ_SITE, objname="ft")
-    # a parallel gripper: the right finger follows the left one (polynomial q_r = q_l)
-    coupling = spec.add_equality(type=mujoco.mjtEq.mjEQ_JOINT, name1="finger_left", name2="finger_right")
-    coupling.data[:5] = [0.0, 1.0, 0.0, 0.0, 0.0]
-    world = spec.worldbody
-    world.add_site(name="pick", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[*PICK_XY, 0.0004], size=[0.04, 0.04, 0.0004],
-                   rgba=[0.3, 0.3, 0.9, 0.4])
-    for z, (xy, rgba) in enumerate(zip(ZONE_XY, ZONE_RGBA, strict=True)):
-        world.add_site(name=f"zone{z}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[*xy, 0.0005],
-                       size=[ZONE_HALF, ZONE_HALF, 0.0005], rgba=list(rgba))
-    cam = spec.camera("scene")
-    cam.pos = list(CAMERA_EYE)
-    cam.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
-    cam.alt.xyaxes = [float(v) for v in pp._lookat_xyaxes(CAMERA_EYE, CAMERA_TARGET).split()]
-    return spec.compile()
-
-
-# --- the env --------------------------------------------------------------------------------------------
 class WeightsEnv(MujocoSimEnv):
     """UR10-like arm placing a container by its shape and weight; see the module docstring.
 
@@ -311,14 +184,14 @@ class WeightsEnv(MujocoSimEnv):
         self._robot_geom_mask = np.isin(m.geom_bodyid, robot)
         self._object_qadr = m.jnt_qposadr[oid(J, "object")]
         self._object_vadr = m.jnt_dofadr[oid(J, "object")]
-        self._arm_qadr = np.array([m.jnt_qposadr[oid(J, n)] for n in pp.JOINT_NAMES])
+        self._arm_qadr = np.array([m.jnt_qposadr[oid(J, n)] for n in JOINT_NAMES])
         self._finger_qadr = np.array([m.jnt_qposadr[oid(J, f"finger_{s}")] for s in ("left", "right")])
         self._tcp_sid = oid(mujoco.mjtObj.mjOBJ_SITE, "tcp")
         self._ft_adr = np.concatenate(
             [m.sensor_adr[oid(mujoco.mjtObj.mjOBJ_SENSOR, n)] + np.arange(3) for n in ("ft_force", "ft_torque")]
         )
         # IK on pickplace's kinematic model (same arm, same tool point)
-        self._ik_model = pp._kinematic_model()
+        self._ik_model = kinematic_model()
         self._ik_data = mujoco.MjData(self._ik_model)
         self._ik_sid = mujoco.mj_name2id(self._ik_model, mujoco.mjtObj.mjOBJ_SITE, "tcp")
 
@@ -393,14 +266,14 @@ class WeightsEnv(MujocoSimEnv):
 
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
-        home = pp.home_configuration()
+        home = home_configuration()
         d.qpos[self._arm_qadr] = home
-        d.qpos[self._finger_qadr] = pp.FINGER_OPEN
+        d.qpos[self._finger_qadr] = FINGER_OPEN
         half_h = SHAPES[shape][2]
-        d.qpos[self._object_qadr : self._object_qadr + 7] = [*PICK_XY, pp.TABLE_TOP + half_h, 1, 0, 0, 0]
-        d.ctrl[pp.ARM_POS_CTRL] = home
-        d.ctrl[pp.ARM_VEL_CTRL] = 0.0
-        d.ctrl[pp.FINGER_CTRL] = pp.FINGER_OPEN
+        d.qpos[self._object_qadr : self._object_qadr + 7] = [*PICK_XY, TABLE_TOP + half_h, 1, 0, 0, 0]
+        d.ctrl[ARM_POS_CTRL] = home
+        d.ctrl[ARM_VEL_CTRL] = 0.0
+        d.ctrl[FINGER_CTRL] = FINGER_OPEN
         self._last_command = np.array(home, dtype=np.float64)
         mujoco.mj_forward(m, d)
         self._tare = d.sensordata[self._ft_adr].copy()  # the gripper's own load at the home pose
@@ -425,11 +298,11 @@ class WeightsEnv(MujocoSimEnv):
         self._maybe_switch_weight()
         d = self.data
         q = d.qpos[self._arm_qadr].copy()
-        q_target, _ = pp._ik(self._ik_model, self._ik_data, self._ik_sid, action[POS_SM], pp.TOOL_ROT, q,
+        q_target, _ = ik(self._ik_model, self._ik_data, self._ik_sid, action[POS_SM], TOOL_ROT, q,
                              tol=1e-9, max_iter=50)
-        q_target = np.clip(q_target, pp.JOINT_LIMITS[:, 0], pp.JOINT_LIMITS[:, 1])
-        d.ctrl[pp.FINGER_CTRL] = finger_servo_target(action[FINGER_SM])
-        self._last_command = pp.servo_control_step(self.model, d, self._last_command, q_target, self._substep)
+        q_target = np.clip(q_target, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
+        d.ctrl[FINGER_CTRL] = finger_servo_target(action[FINGER_SM])
+        self._last_command = servo_control_step(self.model, d, self._last_command, q_target, self._substep)
         self._step += 1
         return self._step_result()
 
@@ -453,7 +326,7 @@ class WeightsEnv(MujocoSimEnv):
         self._set_object_mass(self.mass, self.data)
 
     def _held(self) -> bool:
-        touching = set(pp.contacts_with(self.data, self._object_gid).tolist())
+        touching = set(contacts_with(self.data, self._object_gid).tolist())
         return self._lifted and all(p in touching for p in self._pad_gids) and self._table_gid not in touching
 
     def _maybe_switch_weight(self) -> None:
@@ -478,10 +351,10 @@ class WeightsEnv(MujocoSimEnv):
         self._update_progress()
 
     def _object_bottom(self) -> float:
-        return float(self.data.qpos[self._object_qadr + 2]) - SHAPES[self.shape][2] - pp.TABLE_TOP
+        return float(self.data.qpos[self._object_qadr + 2]) - SHAPES[self.shape][2] - TABLE_TOP
 
     def _update_progress(self) -> None:
-        if not self._lifted and self._object_bottom() > LIFT_THRESHOLD and self._table_gid not in pp.contacts_with(
+        if not self._lifted and self._object_bottom() > LIFT_THRESHOLD and self._table_gid not in contacts_with(
             self.data, self._object_gid
         ):
             self._lifted = True
@@ -500,7 +373,7 @@ class WeightsEnv(MujocoSimEnv):
         return bool(resting and upright and still)
 
     def _released(self) -> bool:
-        touching = pp.contacts_with(self.data, self._object_gid)
+        touching = contacts_with(self.data, self._object_gid)
         opened = bool(np.all(self.data.qpos[self._finger_qadr] >= RELEASED_OPENING))
         return opened and not bool(np.any(self._robot_geom_mask[touching]))
 

@@ -4,22 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_cnmp.sims.base import minimum_jerk
-from lerobot_cnmp.sims.weights.env import (
-    DEMO_LENGTH,
-    FINGER_SM,
-    FT_SM,
-    MIN_REPLAN_STEPS,
-    PHASE_STEPS,
-    POS_SM,
-    SM_DIM,
-    ZONE_XY,
-    tcp_plan,
-)
+from lerobot_cnmp.sims.time_law import minimum_jerk
+from lerobot_cnmp.sims.weights.planner import MIN_REPLAN_STEPS, PHASE_STEPS, tcp_plan
+from lerobot_cnmp.sims.weights.task import DEMO_LENGTH, FINGER_SM, FT_SM, POS_SM, SM_DIM, ZONE_XY
 
 
 class WeightsExpert:
-    """Commands :func:`~lerobot_cnmp.sims.weights.env.tcp_plan` of the episode's true class (it is the
+    """Commands :func:`~lerobot_cnmp.sims.weights.planner.tcp_plan` of the episode's true class (it is the
     demonstrator: it reads ``env.shape`` and ``env.target_zone``).
 
     The action at step ``k`` is the full SM: the planned tool-point position, the planned finger opening
