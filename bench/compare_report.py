@@ -150,7 +150,7 @@ def plot_curves(cells: list[dict], task: str, path: Path) -> Path:
         ax.set_ylim(-3, 103)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    axes[0][0].set_ylabel(f"pc_success ({CURVE_EPISODES} episodes)")
+    axes[0][0].set_ylabel("pc_success (curve evaluation)")
     fig.tight_layout()
     from lerobot_cnmp.plot import save_figure
 
@@ -188,7 +188,7 @@ def plot_demos(cells: list[dict], path: Path) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     for row in axes:
-        row[0].set_ylabel(f"best pc_success ({HELDOUT_EPISODES} held-out episodes)")
+        row[0].set_ylabel("best pc_success (held-out)")
     fig.tight_layout()
     from lerobot_cnmp.plot import save_figure
 
@@ -205,10 +205,14 @@ def report(out: Path, plot: Path) -> str:
     (Path(out) / "curves.json").write_text(json.dumps({"cells": cells}, indent=1))
     seeds = {m: sorted({c["n_seeds"] for c in cells if c["method"] == m and c["n_seeds"]}) for m in METHODS}
     seeds_line = "; ".join(f"{m}: {'/'.join(map(str, v))}" for m, v in seeds.items() if v)
-    text = (f"# Policy comparison: learning curves\n\nBest success (pc_success of the best checkpoint on {HELDOUT_EPISODES} "
+    ok = [r for r in recs if r.get("status") == "ok"]
+    held = "/".join(map(str, sorted({r["heldout"]["n_episodes"] for r in ok}))) or str(HELDOUT_EPISODES)
+    curve = "/".join(map(str, sorted({p["n_episodes"] for r in ok for p in r["points"]}))) or str(CURVE_EPISODES)
+    text = (f"# Policy comparison: learning curves\n\nBest success (pc_success of the best checkpoint on {held} "
             f"held-out episodes, --seed={SEED}), mean [min–max] over training seeds, and the training-loop seconds to "
-            f"reach 90 % of the curve's best (curve: {CURVE_EPISODES} episodes per checkpoint, --seed={CURVE_SEED}). "
-            f"Training seeds per cell: {seeds_line}. {PROMP_NOTE}.\n\n{summary_table(cells)}\n\nEvery cell:\n\n"
+            f"reach 90 % of the curve's best (curve: {curve} episodes per checkpoint, --seed={CURVE_SEED}). "
+            f"Training seeds per cell: {seeds_line}."
+            + (f" {PROMP_NOTE}." if seeds.get("promp") else "") + f"\n\n{summary_table(cells)}\n\nEvery cell:\n\n"
             f"{cell_table(cells)}\n\n"
             + (f"† promp: {PROMP_LABEL}\n\n" if seeds.get("promp") else "")
             + f"Curves (per seed and mean) in curves.json; each seed record's provenance (commit, command, date) "
