@@ -45,7 +45,7 @@ from pathlib import Path
 
 from bench.common import REPO
 from bench.compare_cells import (CAP_S, CURVE_EPISODES, HELDOUT_EPISODES, MARKS_S, METHODS, N_SEEDS, STOCK, TASKS,
-                                 CellError, record_path, schedule, seeds_for)
+                                 record_path, schedule, seeds_for)
 from bench.compare_report import report
 from bench.compare_run import run_seed, save
 

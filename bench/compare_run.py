@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bench.common import REPO, provenance
 from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_STEPS, SEED, TASKS, CellError,
-                                 episodes, eval_command, fit_command, record_path, resume_command, schedule,
+                                 episodes, eval_command, fit_command, record_path, resume_command,
                                  train_command)
 
 
