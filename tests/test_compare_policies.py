@@ -1,195 +1,256 @@
-"""bench/compare_policies.py without training: which cells run (resume / --force / error cells), that a
-failing cell is recorded as an error and ends the run non-zero, and the report (table, plot) on fake result
-files."""
+"""bench.compare_policies without training: the cells' commands and schedule, resume of a cut training and of
+finished seeds, failures recorded as errors (exit 1), and the report's best / time-to-90 % / mean / spread
+computed from fake lerobot-train logs and fake lerobot-eval files."""
 
 import json
 from pathlib import Path
 
 import pytest
 
+import bench.compare_cells as cells
 import bench.compare_policies as cp
+import bench.compare_report as rep
+import bench.compare_run as run
+
+RATE = 10.0  # the fake lerobot-train's steps per second of training loop
+# the fake lerobot-eval's pc_success: curve (seed 200000, by checkpoint step) and held-out (seed 100000)
+CURVE = {1000: {300: 20.0, 600: 60.0, 1200: 55.0}, 1001: {300: 50.0, 600: 70.0, 1200: 80.0},
+         1002: {300: 90.0, 600: 90.0, 1200: 90.0}}
+HELDOUT = {1000: 50.0, 1001: 70.0, 1002: 80.0}
 
 
-def _ok(task, method, n, pc):
-    return {"task": task, "method": method, "n_demos": n, "status": "ok", "pc_success": pc, "n_episodes": 50,
-            "steps": cp.STEPS[method], "train_wall_s": 100.0, "train_peak_rss_mb": 900.0,
-            "select_action_p50_ms": 0.8, "select_action_p95_ms": 3.5, "step_with_processors_p50_ms": 1.2, "date": "2026-12-02T03:00:00",
-            "budget_rule": cp.BUDGET_RULE}
+def _arg(cmd, name):
+    return next(a.split("=", 1)[1] for a in cmd if a.startswith(f"--{name}="))
 
 
-def _write(out, rec):
-    path = cp.result_path(out, rec["task"], rec["method"], rec["n_demos"])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(rec))
-    return path
+class FakeCLIs:
+    """Stands in for run_logged: writes what lerobot-train / lerobot-eval / lerobot-cnmp-fit-promp would."""
+
+    def __init__(self, cut_after=None):
+        self.cut_after, self.commands = cut_after, []
+
+    def __call__(self, cmd, log, env, poll=None):
+        self.commands.append(cmd)
+        log.parent.mkdir(parents=True, exist_ok=True)
+        tool = Path(cmd[0]).name
+        if tool == "lerobot-train":
+            rc = self.train(cmd, log)
+        elif tool == "lerobot-eval":
+            rc = self.eval(cmd, log)
+        else:
+            out = Path(_arg(cmd, "output_dir"))
+            (out / "pretrained_model").mkdir(parents=True)
+            (out / "pretrained_model" / "config.json").write_text("{}")
+            (out / "fit_info.json").write_text(json.dumps({"fit_s": 0.7, "command": "fit"}))
+            log.write_text("fitted\n")
+            rc = 0
+        if poll:
+            poll()
+        return {"rc": rc, "wall_s": 1.0, "peak_rss_mb": 100.0}
+
+    def train(self, cmd, log):
+        if "--resume=true" in cmd:
+            cfg_file = Path(_arg(cmd, "config_path"))
+            cfg = json.loads(cfg_file.read_text())
+            start = json.loads((cfg_file.parents[1] / "training_state" / "training_step.json").read_text())["step"]
+        else:
+            cfg = {"steps": int(_arg(cmd, "steps")), "save_freq": int(_arg(cmd, "save_freq")),
+                   "output_dir": _arg(cmd, "output_dir"), "seed": int(_arg(cmd, "seed")), "dataset": {"root": "d"}}
+            start = 0
+        total, root = cfg["steps"], Path(cfg["output_dir"]) / "checkpoints"
+        bars, saved = [], 0
+        for step in range(start + cfg["save_freq"], total + 1, cfg["save_freq"]):
+            done = step - start
+            t = round(done / RATE)
+            bars.append(f"Training: {100 * done // (total - start)}%|##| {done}/{total - start} "
+                        f"[{t // 60:02d}:{t % 60:02d}<00:10, {RATE}step/s]")
+            ck = root / f"{step:06d}"
+            (ck / "pretrained_model").mkdir(parents=True)
+            (ck / "pretrained_model" / "config.json").write_text("{}")
+            (ck / "pretrained_model" / "train_config.json").write_text(json.dumps(cfg))
+            (ck / "training_state").mkdir()
+            (ck / "training_state" / "training_step.json").write_text(json.dumps({"step": step}))
+            (root / "last").unlink(missing_ok=True)
+            (root / "last").symlink_to(ck.name)
+            saved += 1
+            if self.cut_after is not None and saved >= self.cut_after:
+                log.write_text("\r".join(bars) + "\nKilled\n")
+                self.cut_after = None
+                return 137
+        log.write_text("\r".join(bars) + "\nINFO End of training\n")
+        return 0
+
+    def eval(self, cmd, log):
+        ckpt, seed, n = Path(_arg(cmd, "policy.path")), int(_arg(cmd, "seed")), int(_arg(cmd, "eval.n_episodes"))
+        train_seed = int(next(p.name for p in ckpt.parents if p.name.startswith("seed"))[4:])
+        if "checkpoints" in ckpt.parts:
+            step = int(ckpt.parent.name)
+        else:
+            step = 0  # ProMP's single fit
+        pc = HELDOUT[train_seed] if seed == cells.SEED else CURVE[train_seed].get(step, 33.0)
+        out = Path(_arg(cmd, "output_dir"))
+        out.mkdir(parents=True)
+        (out / "eval_info.json").write_text(json.dumps({"overall": {"pc_success": pc, "n_episodes": n}}))
+        log.write_text("eval\n")
+        return 0
 
 
-def test_should_run_resume_force_and_errors(tmp_path):
-    missing = cp.result_path(tmp_path, "cnmp_obstacle2d", "act", 5)
-    assert cp.should_run(missing, force=False)
-    ok = _write(tmp_path, _ok("cnmp_obstacle2d", "act", 5, 40.0))
-    assert not cp.should_run(ok, force=False)
-    assert cp.should_run(ok, force=True)
-    err = _write(tmp_path, {"task": "cnmp_obstacle2d", "method": "cnmp", "n_demos": 5, "status": "error",
-                            "error": "CellError: lerobot-train failed"})
-    assert cp.should_run(err, force=False)  # an error cell is run again
-    broken = cp.result_path(tmp_path, "cnmp_obstacle2d", "diffusion", 5)
-    broken.write_text("{not json")
-    assert cp.should_run(broken, force=False)
+ARGS = ["--tasks", "cnmp_obstacle2d", "--methods", "cnmp", "--demos", "5", "--marks", "30", "60", "120",
+        "--cap", "cnmp=120", "--no_latency", "--curve_episodes", "4", "--n_episodes", "6"]
 
 
-def test_run_skips_done_cells_and_records_failures(tmp_path, monkeypatch):
-    _write(tmp_path, _ok("cnmp_obstacle2d", "cnmp", 5, 100.0))
-    calls = []
-
-    def fake_cell(task, method, n, **kw):
-        calls.append((task, method, n))
-        if method == "act":
-            raise cp.CellError("lerobot-eval failed (exit 1)", {"train_command": "lerobot-train ..."})
-        return _ok(task, method, n, 10.0 * n)
-
-    monkeypatch.setattr(cp, "run_cell", fake_cell)
-    args = ["--tasks", "cnmp_obstacle2d", "--methods", "cnmp", "act", "--demos", "5", "10", "--out", str(tmp_path)]
-    assert cp.main(args) == 1  # the act cells failed: non-zero, not a silent skip
-    assert calls == [("cnmp_obstacle2d", "act", 5), ("cnmp_obstacle2d", "cnmp", 10), ("cnmp_obstacle2d", "act", 10)]
-    err = json.loads(cp.result_path(tmp_path, "cnmp_obstacle2d", "act", 5).read_text())
-    assert err["status"] == "error" and "lerobot-eval failed" in err["error"]
-    assert err["train_command"] == "lerobot-train ..."
-    assert json.loads(cp.result_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5).read_text())["pc_success"] == 100.0
-
-    calls.clear()
-    monkeypatch.setattr(cp, "run_cell", lambda task, method, n, **kw: calls.append((method, n)) or _ok(task, method, n, 1.0))
-    assert cp.main(args) == 0  # only the two error cells run again
-    assert calls == [("act", 5), ("act", 10)]
-    calls.clear()
-    assert cp.main(args + ["--force"]) == 0
-    assert len(calls) == 4
+@pytest.fixture
+def fake(monkeypatch):
+    clis = FakeCLIs()
+    monkeypatch.setattr(run, "run_logged", clis)
+    monkeypatch.setattr(run, "run_provenance", lambda: {"commit": "abc", "command": "test", "date": "2027-01-01"})
+    return clis
 
 
-def test_a_tasks_own_steps_and_the_override(tmp_path, monkeypatch):
-    """cnmp_so101's CNMP (twice as wide) gets the task's 4500 steps; --steps overrides a task's steps too."""
-    seen = []
-    monkeypatch.setattr(cp, "run_cell", lambda task, method, n, steps, **kw: seen.append((method, steps))
-                        or _ok(task, method, n, 1.0))
-    base = ["--tasks", "cnmp_so101", "--methods", "cnmp", "act", "--demos", "10", "--out", str(tmp_path)]
-    assert cp.main(base) == 0
-    assert seen == [("cnmp", 4500), ("act", cp.STEPS["act"])]
-    seen.clear()
-    assert cp.main(base + ["--force", "--steps", "cnmp=100"]) == 0
-    assert seen == [("cnmp", 100), ("act", cp.STEPS["act"])]
+def test_curves_seeds_and_the_report_from_fake_eval_files(tmp_path, fake):
+    assert cp.main([*ARGS, "--out", str(tmp_path)]) == 0
+    rates = json.loads((tmp_path / "rates.json").read_text())["cnmp_obstacle2d/cnmp"]
+    assert rates["steps_per_s"] == RATE and rates["probe_steps"] == cells.PROBE_STEPS["cnmp"]
+    for seed in (1000, 1001, 1002):  # CNMP's default: 3 training seeds, each trained once with its --seed
+        rec = json.loads(cells.record_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5, seed).read_text())
+        assert rec["status"] == "ok" and rec["schedule"]["marks"] == {"30": 300, "60": 600, "120": 1200}
+        assert f"--seed={seed}" in rec["train"]["attempts"][0]["command"]
+        assert [(p["step"], p["loop_s"], p["n_episodes"]) for p in rec["points"]] == [(300, 30.0, 4), (600, 60.0, 4),
+                                                                                       (1200, 120.0, 4)]
+        assert all(p["provenance"]["commit"] == "abc" and p["eval_command"] for p in rec["points"])  # provenance per point
+        assert rec["heldout"]["n_episodes"] == 6 and f"--seed={cells.SEED}" in rec["heldout"]["eval_command"]
+        # the checkpoint between marks (900) was deleted once a later one existed
+        assert run.checkpoint_steps(cells.record_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5, seed).with_suffix("")
+                                    / "train") == [300, 600, 1200]
+    recs = rep.load_records(tmp_path)
+    seeds = {s["seed"]: s for s in (rep.seed_summary(r) for r in recs)}
+    assert (seeds[1000]["curve_max"], seeds[1000]["t90_s"], seeds[1000]["best_step"]) == (60.0, 60.0, 600)
+    assert (seeds[1001]["t90_s"], seeds[1001]["best_step"]) == (120.0, 1200)
+    assert (seeds[1002]["t90_s"], seeds[1002]["best_step"]) == (30.0, 300)  # a tie: the earliest checkpoint
+    (cell,) = rep.cell_summaries(recs)
+    assert cell["n_seeds"] == 3
+    assert cell["best"] == {"mean": pytest.approx(200 / 3), "min": 50.0, "max": 80.0, "n": 3}
+    assert cell["t90_s"] == {"mean": 70.0, "min": 30.0, "max": 120.0, "n": 3}
+    assert cell["at_2min"]["mean"] == pytest.approx(75.0)
+    assert cell["mean_curve"][0] == [30.0, pytest.approx(160 / 3), 20.0, 90.0]
+    text = rep.report(tmp_path, tmp_path / "docs" / "cmp.png")
+    assert "| cnmp_obstacle2d | 5 | 67 [50–80] (3 seeds) · 70 [30–120] s |" in text
+    assert "cnmp: 3" in text
+    assert (tmp_path / "docs" / "compare_curves_cnmp_obstacle2d.png").stat().st_size > 1000
+    assert (tmp_path / "docs" / "cmp.png").is_file() and json.loads((tmp_path / "curves.json").read_text())["cells"]
+
+    n = len(fake.commands)
+    assert cp.main([*ARGS, "--out", str(tmp_path)]) == 0  # a rerun skips what is done
+    assert len(fake.commands) == n
 
 
-def test_steps_override_is_checked(tmp_path):
+def test_a_cut_training_resumes_and_keeps_its_clock(tmp_path, fake):
+    fake.cut_after = 2  # killed after the checkpoints at 300 and 600
+    args = [*ARGS, "--seeds", "1001", "--out", str(tmp_path)]
+    assert cp.main(args) == 1  # the cut is an error: non-zero, recorded
+    path = cells.record_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5, 1001)
+    rec = json.loads(path.read_text())
+    assert rec["status"] == "error" and "lerobot-train failed (exit 137)" in rec["error"]
+    assert rec["train"]["checkpoint_loop_s"] == {"300": 30.0, "600": 60.0}
+    assert cp.main(args) == 0
+    rec = json.loads(path.read_text())
+    resumed = rec["train"]["attempts"][1]
+    assert "--resume=true" in resumed["command"] and resumed["start_step"] == 600
+    assert rec["train"]["checkpoint_loop_s"]["1200"] == 120.0  # 60 s before the cut + 60 s after the resume
+    assert rec["heldout"]["step"] == 1200 and rec["heldout"]["pc_success"] == 70.0
+    probes = [c for c in fake.commands if "rate_probes" in " ".join(c)]
+    assert len(probes) == 1  # the rate is measured once per task and method
+
+
+def test_promp_is_one_fit_and_one_point(tmp_path, fake):
+    assert cp.main(["--tasks", "cnmp_obstacle2d", "--methods", "promp", "--demos", "5", "--no_latency",
+                    "--curve_episodes", "4", "--n_episodes", "6", "--out", str(tmp_path)]) == 0
+    (rec,) = rep.load_records(tmp_path)
+    assert rec["seed"] == cells.FIRST_SEED and [(p["step"], p["loop_s"]) for p in rec["points"]] == [(0, 0.7)]
+    assert "deterministic" in rep.report(tmp_path, tmp_path / "p.png")
+
+
+def test_schedule_puts_every_mark_on_a_saved_step():
+    s = cells.schedule(7.4, 1800)
+    assert s["save_freq"] == 222 and s["steps"] == 222 * 60
+    assert all(step % s["save_freq"] == 0 for step in s["marks"].values())
+    assert list(s["marks"]) == ["30", "60", "120", "300", "600", "1200", "1800"]  # the 2-minute point is one of them
+    assert cells.schedule(100.0, 90, (30, 60, 120))["marks"] == {"30": 3000, "60": 6000, "90": 9000}
+    with pytest.raises(ValueError):
+        cells.schedule(0.0, 60)
+
+
+def test_seeds_per_method():
+    assert cells.seeds_for("cnmp", None, cells.N_SEEDS) == [1000, 1001, 1002]
+    assert cells.seeds_for("act", None, cells.N_SEEDS) == [1000]
+    assert cells.seeds_for("act", [0, 1, 2], cells.N_SEEDS) == [0, 1, 2]
+    assert cells.seeds_for("promp", [0, 1, 2], cells.N_SEEDS) == [0]  # one closed-form fit
+
+
+@pytest.mark.parametrize("bad", ["nope=3", "cnmp=-1", "cnmp=x"])
+def test_method_options_are_checked(tmp_path, bad):
     with pytest.raises(SystemExit):
-        cp.main(["--tasks", "cnmp_obstacle2d", "--steps", "nope=3", "--out", str(tmp_path)])
-
-
-def test_report_table_and_plot(tmp_path):
-    for method, pcs in (("cnmp", (90.0, 100.0)), ("act", (20.0, 44.0))):
-        for n, pc in zip((5, 10), pcs, strict=True):
-            _write(tmp_path, _ok("cnmp_obstacle2d", method, n, pc))
-    _write(tmp_path, _ok("cnmp_metaworld_reach", "cnmp", 5, 70.0))
-    _write(tmp_path, {"task": "cnmp_metaworld_reach", "method": "diffusion", "n_demos": 5, "status": "error",
-                      "error": "CellError: lerobot-train failed (exit 1)\nTraceback ..."})
-    plot = tmp_path / "plot.png"
-    text = cp.report(tmp_path, plot)
-    summary, every = text.split("Every cell:")
-    # the summary: one row per task and demos, a column per method with pc_success (training seconds)
-    assert "| task | demos | cnmp | act | diffusion |" in summary
-    assert "| cnmp_obstacle2d | 10 | 100 (100 s) | 44 (100 s) | – |" in summary
-    assert "| cnmp_metaworld_reach | 5 | 70 (100 s) | – | err |" in summary
-    rows = [line for line in every.splitlines() if line.startswith("| cnmp_")]
-    assert len(rows) == 6
-    assert rows[0].startswith("| cnmp_obstacle2d | cnmp | 5 | 90.0 | 50 |")  # the tasks in TASKS' order
-    assert rows[4].startswith("| cnmp_metaworld_reach | cnmp | 5 | 70.0 | 50 |")
-    assert "| 0.800 / 3.50 | 1.200 |" in rows[0]
-    assert "| cnmp_metaworld_reach | diffusion | 5 | **error**: CellError: lerobot-train failed (exit 1) |" in text
-    assert "| cnmp_obstacle2d | act | 10 | 44.0 |" in text
-    # methods in the table's order: cnmp before act for the same task and demos
-    obstacle = [r for r in rows if r.startswith("| cnmp_obstacle2d")]
-    assert [r.split("|")[2].strip() for r in obstacle] == ["cnmp", "act", "cnmp", "act"]
-    assert plot.is_file() and plot.stat().st_size > 1000
-    assert (tmp_path / "report.md").read_text() == text
-    assert plot.with_suffix(".md").read_text() == text  # the committed copy beside the plot
+        cp.main(["--tasks", "cnmp_obstacle2d", "--cap", bad, "--out", str(tmp_path)])
 
 
 def test_report_without_results_is_an_error(tmp_path):
     with pytest.raises(SystemExit):
-        cp.report(tmp_path, tmp_path / "p.png")
+        rep.report(tmp_path, tmp_path / "p.png")
 
 
 def test_commands(tmp_path):
     ckpt = tmp_path / "ckpt"
-    cmd = cp.train_command("cnmp_obstacle2d", "act", 3, 900, tmp_path / "train", None)
-    assert "--dataset.episodes=[0,1,2]" in cmd and "--steps=900" in cmd
-    assert "--config_path=configs/act_cpu_obstacle2d.json" in cmd
-    ev = cp.eval_command("cnmp_metaworld_reach", "act", ckpt, 50, 10, tmp_path / "eval")
-    assert f"--seed={cp.SEED}" in ev and "--eval.n_episodes=50" in ev
+    sched = cells.schedule(7.4, 1800)
+    cmd = cells.train_command("cnmp_obstacle2d", "act", 3, 7, sched, tmp_path / "train")
+    assert "--dataset.episodes=[0,1,2]" in cmd and f"--steps={sched['steps']}" in cmd and "--seed=7" in cmd
+    assert f"--save_freq={sched['save_freq']}" in cmd and "--config_path=configs/act_cpu_obstacle2d.json" in cmd
+    assert cells.resume_command(tmp_path)[-1] == "--resume=true"
+    ev = cells.eval_command("cnmp_metaworld_reach", "act", ckpt, 50, 10, tmp_path / "eval")
+    assert f"--seed={cells.SEED}" in ev and "--eval.n_episodes=50" in ev
     assert any(a.startswith("--rename_map=") for a in ev)
-    assert not any(a.startswith("--rename_map=") for a in cp.eval_command("cnmp_metaworld_reach", "cnmp", ckpt, 50, 10,
-                                                                            tmp_path))
-    for task in cp.TASKS.values():
+    assert not any(a.startswith("--rename_map=") for a in cells.eval_command("cnmp_metaworld_reach", "cnmp", ckpt,
+                                                                               50, 10, tmp_path))
+    for task in cells.TASKS.values():
         for config in task["configs"].values():
-            assert (cp.REPO / config).is_file(), config
+            assert (cells.REPO / config).is_file(), config
 
 
 def test_a_tasks_episode_order(tmp_path):
-    """cnmp_pickplace's cells take its grid's corners first; a task without an order takes 0..N-1; every order
-    is a permutation of its dataset's episodes."""
-    assert cp.episodes("cnmp_obstacle2d", 3) == [0, 1, 2]
-    assert cp.episodes("cnmp_pickplace", 5) == [0, 7, 3, 4, 1]
-    cmd = cp.train_command("cnmp_pickplace", "act", 5, 900, tmp_path / "train", None)
-    assert "--dataset.episodes=[0,7,3,4,1]" in cmd
-    for name, task in cp.TASKS.items():
+    """cnmp_pickplace's cells take its grid's corners first; every order is a permutation of the episodes."""
+    assert cells.episodes("cnmp_obstacle2d", 3) == [0, 1, 2]
+    assert cells.episodes("cnmp_pickplace", 5) == [0, 7, 3, 4, 1]
+    for name, task in cells.TASKS.items():
         if "episode_order" in task:
-            total = json.loads((cp.REPO / task["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
+            total = json.loads((cells.REPO / task["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
             assert sorted(task["episode_order"]) == list(range(total)), name
 
 
 def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path):
-    with pytest.raises(cp.CellError, match="ProMP is not set up"):
-        cp.run_cell("cnmp_so101", "promp", 5, out=tmp_path, steps=0, n_episodes=2, batch_size=1)
-
-
-def test_report_labels_in_process_rows(tmp_path):
-    _write(tmp_path, _ok("cnmp_obstacle2d", "cnmp", 5, 90.0))
-    _write(tmp_path, {**_ok("cnmp_obstacle2d", "cnmp", 5, 60.0), "method": "promp", "steps": 0,
-                      "label": cp.PROMP_LABEL, "select_action_p50_ms": None})
-    text = cp.report(tmp_path, tmp_path / "p.png")
-    assert "| cnmp_obstacle2d | promp (open loop†) | 5 | 60.0 |" in text
-    assert "† " + cp.PROMP_LABEL in text
+    with pytest.raises(cells.CellError, match="ProMP is not set up"):
+        run.run_seed("cnmp_so101", "promp", 5, 0, out=tmp_path, schedule_for=None)
 
 
 def test_train_loop_time_from_the_log(tmp_path):
     log = tmp_path / "train.log"
     log.write_text("Training:  50%|#####     | 450/900 [00:59<00:59, 7.5step/s]\rTraining: 100%|##########| "
                    "900/900 [02:03<00:00, 7.31step/s]\nINFO End of training\n")
-    assert cp.train_loop_s(log) == 123.0
+    assert run.train_loop_s(log) == 123.0
+    assert run.bar_points(log) == [(450, 59), (900, 123)]
+    assert run.seconds_at(run.bar_points(log), 451) == 123.0
     log.write_text("Training:  50%|#####     | 450/900 [00:59<00:59, 7.5step/s]\nTraceback ...\n")
-    assert cp.train_loop_s(log) is None
-    assert cp.train_loop_s(tmp_path / "missing.log") is None
-
-
-def test_promp_cells_fit_with_the_cli_and_evaluate_with_lerobot_eval(tmp_path):
-    # ProMP's "training" is the closed-form fit on the cell's episodes; its evaluation is the same lerobot-eval
-    fit = cp.fit_command("cnmp_pickplace", 2, tmp_path / "train")
-    assert Path(fit[0]).name == "lerobot-cnmp-fit-promp"
-    assert "--episodes=0,7" in fit and "--conditioning=task_params" in fit  # the grid corners first
-    assert cp.fit_command("cnmp_obstacle2d", 3, tmp_path)[3] == "--conditioning=conditions"
-    ev = cp.eval_command("cnmp_metaworld_pickplace", "promp", tmp_path / "ckpt", 50, 10, tmp_path / "eval")
-    assert Path(ev[0]).name == "lerobot-eval" and "--env.task=pick-place-v3" in ev
-    assert not any(a.startswith("--rename_map=") for a in ev)  # ProMP reads γ under CNMP's name
+    assert run.train_loop_s(log) is None
+    assert run.train_loop_s(tmp_path / "missing.log") is None
 
 
 def test_methods_without_cells_on_a_task_are_skipped_with_the_reason(tmp_path, monkeypatch, capsys):
     """cnmp_weights has CNMP and ProMP cells only: ACT / Diffusion are skipped (printed, no file, exit 0)."""
-    real_run_cell, calls = cp.run_cell, []
-    monkeypatch.setattr(cp, "run_cell", lambda task, method, n, **kw: calls.append(method) or _ok(task, method, n, 1.0))
+    calls = []
+    monkeypatch.setattr(cp, "run_seed", lambda task, method, n, seed, **kw: calls.append(method) or
+                        {"heldout": {"pc_success": 1.0, "step": 1, "loop_s": 1.0}, "points": []})
     args = ["--tasks", "cnmp_weights", "--methods", "cnmp", "act", "diffusion", "promp", "--demos", "10",
-            "--out", str(tmp_path)]
+            "--n_seeds", "cnmp=1", "--out", str(tmp_path)]
     assert cp.main(args) == 0
     assert calls == ["cnmp", "promp"]
     assert "validate_features" in capsys.readouterr().out
-    assert not cp.result_path(tmp_path, "cnmp_weights", "act", 10).exists()
-    with pytest.raises(cp.CellError, match="act has no cell on cnmp_weights"):
-        real_run_cell("cnmp_weights", "act", 10, out=tmp_path, steps=1, n_episodes=2, batch_size=1)
+    with pytest.raises(cells.CellError, match="act has no cell on cnmp_weights"):
+        run.run_seed("cnmp_weights", "act", 10, 0, out=tmp_path, schedule_for=None)
