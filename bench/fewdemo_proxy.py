@@ -1,11 +1,13 @@
-"""Offline proxy for the few-demo MetaWorld cells: no sim, seconds per fit.
+"""Few-demo MetaWorld cells, CNMP vs contextual ProMP: offline proxies (seconds per fit) and, on request, sim success.
 
 Fits CNMP (the task's committed config, trained as ``lerobot-train --dataset.episodes=[0..N-1]`` trains it: the
 policy's bank holds every episode, with statistics over all of them, and the training draws name the first N
 only) and the contextual ProMP (``ProMPBaseline`` on the first N episodes' actions, conditioned on γ), then
 predicts each held-out episode's (30-49) action trajectory from its γ (CNMP also from its first frame's sensed
 state, as execution conditions on it at t = 0) and reports the RMSE of the actions, per dim in units of the
-dataset's action std, averaged over dims, phases and episodes.
+dataset's action std, averaged over dims, phases and episodes; also ``rmse_feedback`` (CNMP conditioned on the
+demo's own hand state at every phase) and ``drift`` (the running sum of the dx, dy, dz errors: the proxy that
+agrees with the sim). ``--sim_episodes`` rolls both out in the MetaWorld sim (seeds 100000+).
 
     python -m bench.fewdemo_proxy --task push --demos 5 10 20 --steps 3000
     python -m bench.fewdemo_proxy --task push --demos 10 --methods promp cnmp --sim_episodes 50   # + sim success
