@@ -3,11 +3,7 @@ PD tracking and chunking. None of them changes the model or its training."""
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, fields
-from typing import Any
-
-logger = logging.getLogger(__name__)
+from dataclasses import dataclass
 
 PHASE_STOP_UNITS = ("sigma", "normalized")
 
@@ -91,35 +87,3 @@ class ExecutionConfig:
                     raise ValueError(f"{name} must name at least one SM dimension (or be None)")
         if self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be >= 1, got {self.n_action_steps}")
-
-
-EXECUTION_FIELDS = tuple(f.name for f in fields(ExecutionConfig))
-
-
-LEGACY_EXECUTION_FIELDS = tuple(n for n in EXECUTION_FIELDS
-                                if n not in ("phase_stop_units", "phase_stop_timeout_s", "n_action_steps"))
-"""The execution settings that ``CNMPConfig`` held at its top level before ``execution`` existed."""
-
-_OLD_LAYOUT_MARKERS = ("online_feedback", "condition_on_start", "sigma_scaled_gains", "numpy_execution", "pd_kp")
-
-
-def apply_legacy_execution(execution: ExecutionConfig, legacy: dict[str, Any]) -> ExecutionConfig:
-    """``execution`` with the old top-level settings ``legacy`` (name -> value, None = not given) applied.
-
-    A whole old config (a checkpoint's config.json from before ``execution`` existed: every marker field is
-    set) is taken as written, None values included (``phase_stop_threshold: null`` = never stop), with the
-    phase-stop semantics it was written for: ``phase_stop_units="normalized"`` and no timeout. Only fields
-    of ``execution`` still at their defaults are replaced, so ``--policy.execution.<field>=...`` given with
-    ``--policy.path`` wins. Single aliases (``--policy.pd_kp=0.5``) set their field."""
-    defaults = ExecutionConfig()
-    old_layout = all(legacy.get(k) is not None for k in _OLD_LAYOUT_MARKERS)
-    given = dict(legacy) if old_layout else {k: v for k, v in legacy.items() if v is not None}
-    if not given:
-        return execution
-    values = vars(execution).copy()
-    if old_layout:
-        given.update(phase_stop_units="normalized", phase_stop_timeout_s=None)
-        given = {k: v for k, v in given.items() if values[k] == getattr(defaults, k)}
-    values.update(given)
-    logger.debug("CNMP config: old top-level execution settings %s moved under 'execution'", sorted(given))
-    return ExecutionConfig(**values)
