@@ -1,13 +1,15 @@
 """What the CNMP sims' LeRobot ``EnvConfig``s share: rendering and episode options, their checks, the gym id
-``cnmp/<task>``, and the registration of each sim's gymnasium id by a string entry point (no env module is
-imported until an env is made)."""
+``cnmp/<task>``, the registration of each sim's gymnasium id by a string entry point (no env module is
+imported until an env is made), and the features of the point-mass sims."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import gymnasium as gym
+from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 
 def register_gym_id(gym_id: str, entry_point: str, max_episode_steps: int) -> None:
@@ -15,6 +17,21 @@ def register_gym_id(gym_id: str, entry_point: str, max_episode_steps: int) -> No
     ``gym.make`` only."""
     if gym_id not in gym.registry:
         gym.register(id=gym_id, entry_point=entry_point, max_episode_steps=max_episode_steps)
+
+
+def point_mass_features(env_state_dim: int) -> dict[str, PolicyFeature]:
+    """The features of a point-mass sim (obstacle2d, room): the (x, y) action, ``agent_pos`` (x, y) and
+    ``environment_state`` (the encoded conditions, ``env_state_dim`` values)."""
+    return {
+        ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
+        "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+        "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(env_state_dim,)),
+    }
+
+
+def point_mass_features_map(**extra: str) -> dict[str, str]:
+    """The env keys of a point-mass sim mapped to the policy's (``extra``: further env key -> policy key)."""
+    return {ACTION: ACTION, "agent_pos": OBS_STATE, "environment_state": OBS_ENV_STATE, **extra}
 
 
 @dataclass

@@ -53,6 +53,13 @@ def condition_feature_names(max_conditions: int, sm_names: list[str]) -> list[st
     return names
 
 
+def point_mass_feature_names(max_conditions: int) -> dict[str, list[str]]:
+    """Feature names of a point-mass sim (obstacle2d, room): action and ``agent_pos`` in (x, y), and the
+    conditions layout of ``environment_state`` with ``max_conditions`` slots."""
+    xy = ["x", "y"]
+    return {"action": xy, "agent_pos": list(xy), "environment_state": condition_feature_names(max_conditions, xy)}
+
+
 def records_only(sim: str, conditions_name: str, what: str) -> Callable[[str], dict[str, Any]]:
     """``config_kwargs`` of a sim that records one fixed set of episodes (its ``reset_options``): the only
     valid ``conditions`` is that set's name, and the env config takes no conditions option."""

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.configs import PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
+from lerobot_cnmp.sims.config import CNMPSimConfig, point_mass_features, point_mass_features_map, register_gym_id
 from lerobot_cnmp.sims.obstacle2d.model import (
     ACTUATOR_CHOICES,
     CONTROL_FPS,
@@ -56,20 +55,8 @@ class CNMPObstacle2DEnv(CNMPSimConfig):
     family: str = "mirrored"
     actuator: str = "servo"
     rate_limit: float = RATE_LIMIT
-    features: dict[str, PolicyFeature] = field(
-        default_factory=lambda: {
-            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
-            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(ENV_STATE_DIM,)),
-        }
-    )
-    features_map: dict[str, str] = field(
-        default_factory=lambda: {
-            ACTION: ACTION,
-            "agent_pos": OBS_STATE,
-            "environment_state": OBS_ENV_STATE,
-        }
-    )
+    features: dict[str, PolicyFeature] = field(default_factory=lambda: point_mass_features(ENV_STATE_DIM))
+    features_map: dict[str, str] = field(default_factory=point_mass_features_map)
 
     def __post_init__(self):
         self._check_choice("task", ("Obstacle2D-v0",))

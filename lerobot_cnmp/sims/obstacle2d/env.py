@@ -33,10 +33,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.execution.conditions import Condition, encode_conditions  # noqa: E402
-from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.execution.conditions import Condition  # noqa: E402
 from lerobot_cnmp.sims.obstacle2d.model import (  # noqa: E402
     ACTION_HIGH,
     ACTION_LOW,
@@ -56,18 +54,16 @@ from lerobot_cnmp.sims.obstacle2d.model import (  # noqa: E402
 )
 from lerobot_cnmp.sims.obstacle2d.task import (  # noqa: E402
     CONDITION_CHOICES,
-    ENV_STATE_DIM,
     MAX_CONDITIONS,
     SM_DIM,
     Obstacle2DTask,
     check_family,
     sample_episode,
 )
+from lerobot_cnmp.sims.point_mass_env import SUCCESS_TOL, PointMassEnv  # noqa: E402
 
-SUCCESS_TOL = 0.05
 
-
-class Obstacle2DEnv(MujocoSimEnv):
+class Obstacle2DEnv(PointMassEnv):
     """Point mass around a round obstacle; see the module docstring.
 
     Args:
@@ -92,6 +88,10 @@ class Obstacle2DEnv(MujocoSimEnv):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
     camera = "top"
+    action_low, action_high = ACTION_LOW, ACTION_HIGH
+    n_substeps = N_SUBSTEPS
+    sm_dim, max_conditions = SM_DIM, MAX_CONDITIONS
+    reset_option_keys = frozenset({"mode", "task", "conditions"})
 
     def __init__(
         self,
@@ -123,27 +123,8 @@ class Obstacle2DEnv(MujocoSimEnv):
         self.rate_limit = float(rate_limit)
         self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
 
-        self.model = mujoco.MjModel.from_xml_string(MJCF)
-        self.data = mujoco.MjData(self.model)
-        self._obstacle_gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "obstacle")
-        self._agent_gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "agent")
-        self._goal_sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "goal")
-        self._cond_sids = [
-            mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, f"cond{k}") for k in range(MAX_CONDITIONS)
-        ]
-
-        self.observation_space = spaces.Dict(
-            {
-                "agent_pos": spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32),
-                "environment_state": spaces.Box(-np.inf, np.inf, shape=(ENV_STATE_DIM,), dtype=np.float32),
-            }
-        )
-        self.action_space = spaces.Box(ACTION_LOW, ACTION_HIGH, dtype=np.float32)
-
-        self.task: Obstacle2DTask | None = None
-        self.conditions: list[Condition] = []
+        self._init_point_mass(MJCF, goal_site="goal", blocking_geoms=("obstacle",))
         self.condition_kind: str = ""
-        self._env_state = np.zeros(ENV_STATE_DIM, dtype=np.float32)
 
     # --- public helpers ------------------------------------------------------------------------------
     @property
@@ -154,30 +135,18 @@ class Obstacle2DEnv(MujocoSimEnv):
     def goal(self) -> np.ndarray:
         return self.task.goal
 
-    @property
-    def agent_pos(self) -> np.ndarray:
-        return self.data.qpos[:2].copy()
-
-    # --- gym API -------------------------------------------------------------------------------------
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = dict(options or {})
-        # Keys LeRobot's rollout adds itself (e.g. "lerobot_new_rollout") are not ours to check.
-        unknown = {k for k in options if not str(k).startswith("lerobot_")} - {"mode", "task", "conditions"}
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; known: ['conditions', 'mode', 'task']")
+    # --- episode -----------------------------------------------------------------------------------
+    def _new_episode(self, options: dict) -> None:
         if "task" in options:
-            task = options["task"]
-            if not isinstance(task, Obstacle2DTask):
-                raise ValueError(f"options['task'] must be an Obstacle2DTask, got {type(task).__name__}")
+            task = self._task_option(options, Obstacle2DTask)
             conds = list(options.get("conditions", []))
             kind = "custom"
         else:
             if "conditions" in options:
                 raise ValueError("options['conditions'] needs options['task'] too")
             task, conds, kind = sample_episode(self.np_random, self.conditions_mode, options.get("mode"), self.family)
-        self.task, self.conditions, self.condition_kind = task, conds, kind
-        self._env_state = encode_conditions(conds, sm_dim=SM_DIM, max_conditions=MAX_CONDITIONS)
+        self._set_episode(task, conds)
+        self.condition_kind = kind
 
         # perturbation schedule, drawn after the task so a seed gives the same task with or without it
         self._perturb_step = (
@@ -190,24 +159,22 @@ class Obstacle2DEnv(MujocoSimEnv):
         self._perturbed = False
         self._hold_pos: np.ndarray | None = None
         self._hold_left = 0
-
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:2] = task.start
-        self.data.qvel[:] = 0.0
-        self.data.ctrl[:] = task.start
         self._setpoint = np.array(task.start, dtype=np.float64)  # the rate_limited actuator's set point
-        self._set_markers()
-        mujoco.mj_forward(self.model, self.data)  # after the markers: rendering reads the computed site poses
-        self._step = 0
-        self._contact = False
-        self._cond_min_err = np.full(len(conds), np.inf)
-        self._update_progress()
-        return self._obs(), self._info()
 
-    def step(self, action):
-        if self.task is None:
-            raise RuntimeError("call reset() before step()")
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), ACTION_LOW, ACTION_HIGH)
+    def _goal_marker(self) -> np.ndarray:
+        return self.task.goal
+
+    def _place_condition_marker(self, sid: int, c: Condition) -> None:
+        m = self.model
+        if c.dims is None or len(c.dims) == SM_DIM:
+            m.site_pos[sid, :2] = c.values
+            m.site_size[sid] = [0.025, 0.025, 0.002]
+        else:  # one-dimensional condition: a bar across the scene at that coordinate
+            m.site_pos[sid, :2] = [0.5 if 0 not in c.dims else c.values[0], c.values[1]]
+            m.site_size[sid] = [0.6, 0.006, 0.002] if 0 not in c.dims else [0.006, 0.6, 0.002]
+
+    # --- step ----------------------------------------------------------------------------------------
+    def _actuate(self, action: np.ndarray) -> None:
         if self._hold_left > 0:
             self._hold_left -= 1
             self.data.qpos[:2] = self._hold_pos
@@ -216,41 +183,22 @@ class Obstacle2DEnv(MujocoSimEnv):
             self._setpoint = self._hold_pos.copy()
             self.data.time += N_SUBSTEPS * self.model.opt.timestep
             mujoco.mj_forward(self.model, self.data)
-        else:
-            if self.actuator == "rate_limited":
-                delta = action - self._setpoint
-                most = self.rate_limit * N_SUBSTEPS * self.model.opt.timestep
-                dist = float(np.linalg.norm(delta))
-                self._setpoint = self._setpoint + (delta if dist <= most else delta * (most / dist))
-                action = self._setpoint
-            self.data.ctrl[:] = action
-            for _ in range(N_SUBSTEPS):
-                mujoco.mj_step(self.model, self.data)
-                if not self._contact and self._in_contact():
-                    self._contact = True
-        self._step += 1
+            return
+        if self.actuator == "rate_limited":
+            delta = action - self._setpoint
+            most = self.rate_limit * N_SUBSTEPS * self.model.opt.timestep
+            dist = float(np.linalg.norm(delta))
+            self._setpoint = self._setpoint + (delta if dist <= most else delta * (most / dist))
+            action = self._setpoint
+        self._run_servos(action)
+
+    def _after_step(self) -> None:
         if self._step == self._perturb_step:  # push: displaced now; hold: held for the next HOLD_STEPS
             self._start_perturbation()
-        self._update_progress()
-        return self._step_result()
-
-    # --- internals -----------------------------------------------------------------------------------
-    def _obs(self) -> dict:
-        return {"agent_pos": self.data.qpos[:2].astype(np.float32), "environment_state": self._env_state.copy()}
-
-    def _in_contact(self) -> bool:
-        return self._obstacle_gid in contacts_with(self.data, self._agent_gid)
-
-    def _update_progress(self):
-        pos = self.data.qpos[:2]
-        for k, c in enumerate(self.conditions):
-            dims = list(range(SM_DIM)) if c.dims is None else list(c.dims)
-            err = float(np.linalg.norm(pos[dims] - np.asarray(c.values)[dims]))
-            self._cond_min_err[k] = min(self._cond_min_err[k], err)
 
     def _info(self) -> dict:
-        goal_error = float(np.linalg.norm(self.data.qpos[:2] - self.task.goal))
-        n_passed = int(np.sum(self._cond_min_err <= SUCCESS_TOL))
+        goal_error = self._distance_to(self.task.goal)
+        n_passed = self._conditions_passed()
         success = goal_error <= SUCCESS_TOL and n_passed == len(self.conditions) and not self._contact
         return {
             "is_success": bool(success),
@@ -293,19 +241,3 @@ class Obstacle2DEnv(MujocoSimEnv):
         elif self.perturbation == "hold":
             self._hold_pos = pos
             self._hold_left = HOLD_STEPS
-
-    def _set_markers(self):
-        m = self.model
-        m.site_pos[self._goal_sid, :2] = self.task.goal
-        for k, sid in enumerate(self._cond_sids):
-            if k < len(self.conditions):
-                c = self.conditions[k]
-                if c.dims is None or len(c.dims) == SM_DIM:
-                    m.site_pos[sid, :2] = c.values
-                    m.site_size[sid] = [0.025, 0.025, 0.002]
-                else:  # y-only condition: a horizontal bar at that height
-                    m.site_pos[sid, :2] = [0.5 if 0 not in c.dims else c.values[0], c.values[1]]
-                    m.site_size[sid] = [0.6, 0.006, 0.002] if 0 not in c.dims else [0.006, 0.6, 0.002]
-                m.site_rgba[sid] = [0.05, 0.05, 0.05, 0.9]
-            else:
-                m.site_rgba[sid] = [0, 0, 0, 0]

@@ -10,7 +10,7 @@ from typing import Any
 from lerobot_cnmp.sims.obstacle2d.config import CNMPObstacle2DEnv
 from lerobot_cnmp.sims.obstacle2d.expert import Obstacle2DExpert
 from lerobot_cnmp.sims.obstacle2d.task import MAX_CONDITIONS
-from lerobot_cnmp.sims.registry import SimSpec, condition_feature_names
+from lerobot_cnmp.sims.registry import SimSpec, point_mass_feature_names
 
 
 def _obstacle2d_reset_options(i: int, conditions: str) -> dict[str, Any] | None:
@@ -27,11 +27,7 @@ SPEC = SimSpec(
     demo_length=200,
     default_episodes=64,
     default_conditions="random",
-    feature_names={
-        "action": ["x", "y"],
-        "agent_pos": ["x", "y"],
-        "environment_state": condition_feature_names(MAX_CONDITIONS, ["x", "y"]),
-    },
+    feature_names=point_mass_feature_names(MAX_CONDITIONS),
     reset_options=_obstacle2d_reset_options,
     episode_label=lambda env: env.task.mode_name,
     features_note=(

@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import OBS_IMAGES
 
-from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
+from lerobot_cnmp.sims.config import CNMPSimConfig, point_mass_features, point_mass_features_map, register_gym_id
 from lerobot_cnmp.sims.room.model import CONTROL_FPS, DEFAULT_IMAGE_SIZE, ENV_STATE_DIM, MAX_IMAGE_SIZE
 from lerobot_cnmp.sims.room.task import CONDITION_CHOICES, DEFAULT_MAX_EPISODE_STEPS
 
@@ -42,20 +42,9 @@ class CNMPRoomEnv(CNMPSimConfig):
     episode_length: int = DEFAULT_MAX_EPISODE_STEPS
     condition: str = "start_end"
     image_size: int = DEFAULT_IMAGE_SIZE
-    features: dict[str, PolicyFeature] = field(
-        default_factory=lambda: {
-            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
-            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(ENV_STATE_DIM,)),
-        }
-    )
+    features: dict[str, PolicyFeature] = field(default_factory=lambda: point_mass_features(ENV_STATE_DIM))
     features_map: dict[str, str] = field(
-        default_factory=lambda: {
-            ACTION: ACTION,
-            "agent_pos": OBS_STATE,
-            "environment_state": OBS_ENV_STATE,
-            "pixels/top": f"{OBS_IMAGES}.top",
-        }
+        default_factory=lambda: point_mass_features_map(**{"pixels/top": f"{OBS_IMAGES}.top"})
     )
 
     def __post_init__(self):

@@ -54,15 +54,13 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
-from lerobot_cnmp.execution.conditions import Condition, encode_conditions  # noqa: E402
-from lerobot_cnmp.sims.base import MujocoSimEnv, contacts_with  # noqa: E402
+from lerobot_cnmp.execution.conditions import Condition  # noqa: E402
 from lerobot_cnmp.sims.room.model import (  # noqa: E402
     ACTION_HIGH,
     ACTION_LOW,
     AGENT_RADIUS,
     CONTROL_FPS,
     DEFAULT_IMAGE_SIZE,
-    ENV_STATE_DIM,
     MAX_CONDITIONS,
     MAX_IMAGE_SIZE,
     MJCF,
@@ -72,6 +70,7 @@ from lerobot_cnmp.sims.room.model import (  # noqa: E402
     SM_DIM,
     WALL_GEOMS,
 )
+from lerobot_cnmp.sims.point_mass_env import SUCCESS_TOL, PointMassEnv  # noqa: E402
 from lerobot_cnmp.sims.room.planner import distance_to_obstacles  # noqa: E402
 from lerobot_cnmp.sims.room.task import (  # noqa: E402
     CONDITION_CHOICES,
@@ -80,12 +79,11 @@ from lerobot_cnmp.sims.room.task import (  # noqa: E402
     episode_conditions,
 )
 
-SUCCESS_TOL = 0.05
 RIGHT_SIDE_X = 0.85  # "on the right side" without an end condition
 REST_SPEED = 0.05  # m/s: at rest below this speed
 
 
-class RoomEnv(MujocoSimEnv):
+class RoomEnv(PointMassEnv):
     """Point mass crossing a room with two obstacles, seen as a top-down mask; see the module docstring.
 
     Args:
@@ -105,6 +103,10 @@ class RoomEnv(MujocoSimEnv):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
     camera = "view"
+    action_low, action_high = ACTION_LOW, ACTION_HIGH
+    n_substeps = N_SUBSTEPS
+    sm_dim, max_conditions = SM_DIM, MAX_CONDITIONS
+    reset_option_keys = frozenset({"task", "via_phase"})
 
     def __init__(
         self,
@@ -123,42 +125,23 @@ class RoomEnv(MujocoSimEnv):
         self.image_size = int(image_size)
         self._init_options(render_mode, render_size, terminate_on_success, max_episode_steps)
 
-        self.model = mujoco.MjModel.from_xml_string(MJCF)
-        self.data = mujoco.MjData(self.model)
-
-        def gid(name):
-            return mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
-
-        self._agent_gid = gid("agent")
-        self._obstacle_gids = [gid(n) for n in OBSTACLE_GEOMS]
-        self._blocking_gids = frozenset(gid(n) for n in (*WALL_GEOMS, *OBSTACLE_GEOMS))
+        s = self.image_size
+        self._init_point_mass(
+            MJCF,
+            goal_site="end",
+            blocking_geoms=(*WALL_GEOMS, *OBSTACLE_GEOMS),
+            extra_observations={"pixels": spaces.Dict({"top": spaces.Box(0, 255, shape=(s, s, 3), dtype=np.uint8)})},
+        )
+        self._obstacle_gids = [self._geom_id(n) for n in OBSTACLE_GEOMS]
         self._mask_gids = sorted(self._blocking_gids)
-        self._end_sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "end")
-        self._cond_sids = [
-            mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, f"cond{k}") for k in range(MAX_CONDITIONS)
-        ]
         self._mask_renderer: mujoco.Renderer | None = None
         self._mask_option = mujoco.MjvOption()
         self._mask_option.geomgroup[:] = 0
         self._mask_option.geomgroup[0] = 1  # walls and obstacles only: no floor (1), no agent (2)
         self._mask_option.sitegroup[:] = 0  # no markers
-
-        s = self.image_size
-        self.observation_space = spaces.Dict(
-            {
-                "agent_pos": spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32),
-                "environment_state": spaces.Box(-np.inf, np.inf, shape=(ENV_STATE_DIM,), dtype=np.float32),
-                "pixels": spaces.Dict({"top": spaces.Box(0, 255, shape=(s, s, 3), dtype=np.uint8)}),
-            }
-        )
-        self.action_space = spaces.Box(ACTION_LOW, ACTION_HIGH, dtype=np.float32)
-
-        self.task: RoomTask | None = None
-        self.conditions: list[Condition] = []
         self.condition_kind: str = condition
         self.via_phase: float = float("nan")
         self._end_condition: Condition | None = None
-        self._env_state = np.zeros(ENV_STATE_DIM, dtype=np.float32)
         self._mask = np.zeros((s, s, 3), dtype=np.uint8)
 
     # --- public helpers ------------------------------------------------------------------------------
@@ -167,65 +150,43 @@ class RoomEnv(MujocoSimEnv):
         return "cross the room from left to right around the obstacles"
 
     @property
-    def agent_pos(self) -> np.ndarray:
-        return self.data.qpos[:2].copy()
-
-    @property
     def mask(self) -> np.ndarray:
         """The episode's top-down mask (a copy), ``(image_size, image_size, 3)`` uint8 in {0, 255}."""
         return self._mask.copy()
 
-    # --- gym API -------------------------------------------------------------------------------------
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = dict(options or {})
-        # Keys LeRobot's rollout adds itself (e.g. "lerobot_new_rollout") are not ours to check.
-        unknown = {k for k in options if not str(k).startswith("lerobot_")} - {"task", "via_phase"}
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; known: ['task', 'via_phase']")
-        if "task" in options:
-            task = options["task"]
-            if not isinstance(task, RoomTask):
-                raise ValueError(f"options['task'] must be a RoomTask, got {type(task).__name__}")
-        else:
-            task = RoomTask.sample(self.np_random)
+    # --- episode -----------------------------------------------------------------------------------
+    def _new_episode(self, options: dict) -> None:
+        task = self._task_option(options, RoomTask) if "task" in options else RoomTask.sample(self.np_random)
         via_phase = float(self.np_random.uniform(*VIA_PHASE_RANGE))
         if "via_phase" in options:
             via_phase = float(options["via_phase"])
             if not 0.0 <= via_phase <= 1.0:
                 raise ValueError(f"options['via_phase'] must be in [0, 1], got {via_phase}")
-        self.task, self.via_phase = task, via_phase
-        self.conditions = episode_conditions(task, self.condition, via_phase)
-        self._env_state = encode_conditions(self.conditions, sm_dim=SM_DIM, max_conditions=MAX_CONDITIONS)
+        self.via_phase = via_phase
+        self._set_episode(task, episode_conditions(task, self.condition, via_phase))
         self._end_condition = next((c for c in self.conditions if c.phase == 1.0), None)
-
-        mujoco.mj_resetData(self.model, self.data)
-        self._place_obstacles()
-        self._set_markers()
-        self.data.qpos[:2] = task.start
-        self.data.qvel[:] = 0.0
-        self.data.ctrl[:] = task.start
-        mujoco.mj_forward(self.model, self.data)  # after placing geoms and markers: rendering reads them
-        self._mask = self._render_mask()
-        self._step = 0
-        self._collision = False
         self._min_clearance = np.inf
-        self._cond_min_err = np.full(len(self.conditions), np.inf)
-        self._update_progress()
-        return self._obs(), self._info()
 
-    def step(self, action):
-        if self.task is None:
-            raise RuntimeError("call reset() before step()")
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), ACTION_LOW, ACTION_HIGH)
-        self.data.ctrl[:] = action
-        for _ in range(N_SUBSTEPS):
-            mujoco.mj_step(self.model, self.data)
-            if not self._collision and self._in_contact():
-                self._collision = True
-        self._step += 1
-        self._update_progress()
-        return self._step_result()
+    def _reset_physics(self) -> None:
+        super()._reset_physics()
+        self._mask = self._render_mask()  # static: rendered once per episode
+
+    def _place_scene(self) -> None:
+        m = self.model
+        for gid, ob in zip(self._obstacle_gids, self.task.obstacles):
+            x0, x1, y0, y1 = ob.rect
+            half = [(x1 - x0) / 2, (y1 - y0) / 2, OBSTACLE_HALF_HEIGHT]
+            body = m.geom_bodyid[gid]
+            m.body_pos[body] = [(x0 + x1) / 2, (y0 + y1) / 2, 0.0]
+            m.geom_size[gid] = half
+            # collision detection prunes with bounding volumes computed at compile time (the geom's
+            # bounding sphere and box, its body's one-node BVH, all in body coordinates): they follow
+            m.geom_rbound[gid] = float(np.linalg.norm(half))
+            m.geom_aabb[gid] = [0.0, 0.0, 0.0, *half]
+            m.bvh_aabb[m.body_bvhadr[body]] = [0.0, 0.0, 0.0, *half]
+
+    def _goal_marker(self):
+        return self.task.end
 
     def close(self):
         if self._mask_renderer is not None:
@@ -242,38 +203,27 @@ class RoomEnv(MujocoSimEnv):
         return obs, reward, terminated, truncated, info
 
     def _obs(self) -> dict:
-        return {
-            "agent_pos": self.data.qpos[:2].astype(np.float32),
-            "environment_state": self._env_state.copy(),
-            "pixels": {"top": self._mask.copy()},
-        }
-
-    def _in_contact(self) -> bool:
-        return not self._blocking_gids.isdisjoint(contacts_with(self.data, self._agent_gid).tolist())
+        return {**super()._obs(), "pixels": {"top": self._mask.copy()}}
 
     def _update_progress(self):
-        pos = self.data.qpos[:2]
-        for k, c in enumerate(self.conditions):
-            err = float(np.linalg.norm(pos - np.asarray(c.values)))
-            self._cond_min_err[k] = min(self._cond_min_err[k], err)
-        clearance = float(distance_to_obstacles(self.task, pos)) - AGENT_RADIUS
+        super()._update_progress()
+        clearance = float(distance_to_obstacles(self.task, self.data.qpos[:2])) - AGENT_RADIUS
         self._min_clearance = min(self._min_clearance, clearance)
 
     def _info(self) -> dict:
-        pos = self.data.qpos[:2]
-        end_error = float(np.linalg.norm(pos - np.asarray(self.task.end)))
+        end_error = self._distance_to(self.task.end)
         if self._end_condition is not None:
-            right_side = float(np.linalg.norm(pos - np.asarray(self._end_condition.values))) <= SUCCESS_TOL
+            right_side = self._distance_to(self._end_condition.values) <= SUCCESS_TOL
         else:
-            right_side = float(pos[0]) >= RIGHT_SIDE_X
+            right_side = float(self.data.qpos[0]) >= RIGHT_SIDE_X
         at_rest = float(np.linalg.norm(self.data.qvel[:2])) <= REST_SPEED
-        n_passed = int(np.sum(self._cond_min_err <= SUCCESS_TOL))
+        n_passed = self._conditions_passed()
         errors = np.full(MAX_CONDITIONS, np.nan)
         errors[: len(self.conditions)] = self._cond_min_err
-        success = not self._collision and n_passed == len(self.conditions) and right_side and at_rest
+        success = not self._contact and n_passed == len(self.conditions) and right_side and at_rest
         return {
             "is_success": bool(success),
-            "collision": bool(self._collision),
+            "collision": bool(self._contact),
             "conditions_passed": n_passed,
             "condition_errors": errors,  # closest approach to each condition so far (nan: no condition)
             "end_error": end_error,  # distance to the room's end (a condition or not)
@@ -281,30 +231,6 @@ class RoomEnv(MujocoSimEnv):
             "at_rest": bool(at_rest),
             "min_clearance": float(self._min_clearance),  # least gap agent surface <-> obstacle/wall so far
         }
-
-    def _place_obstacles(self):
-        m = self.model
-        for gid, ob in zip(self._obstacle_gids, self.task.obstacles):
-            x0, x1, y0, y1 = ob.rect
-            half = [(x1 - x0) / 2, (y1 - y0) / 2, OBSTACLE_HALF_HEIGHT]
-            body = m.geom_bodyid[gid]
-            m.body_pos[body] = [(x0 + x1) / 2, (y0 + y1) / 2, 0.0]
-            m.geom_size[gid] = half
-            # collision detection prunes with bounding volumes computed at compile time (the geom's
-            # bounding sphere and box, its body's one-node BVH, all in body coordinates): they follow
-            m.geom_rbound[gid] = float(np.linalg.norm(half))
-            m.geom_aabb[gid] = [0.0, 0.0, 0.0, *half]
-            m.bvh_aabb[m.body_bvhadr[body]] = [0.0, 0.0, 0.0, *half]
-
-    def _set_markers(self):
-        m = self.model
-        m.site_pos[self._end_sid, :2] = self.task.end
-        for k, sid in enumerate(self._cond_sids):
-            if k < len(self.conditions):
-                m.site_pos[sid, :2] = self.conditions[k].values
-                m.site_rgba[sid] = [0.05, 0.05, 0.05, 0.9]
-            else:
-                m.site_rgba[sid] = [0, 0, 0, 0]
 
     def _render_mask(self) -> np.ndarray:
         """Render walls and obstacles white (nothing else) from the ``top`` camera, threshold to 0/255."""

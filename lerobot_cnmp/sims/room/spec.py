@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from lerobot_cnmp.sims.registry import SimSpec, condition_feature_names
+from lerobot_cnmp.sims.registry import SimSpec, point_mass_feature_names
 from lerobot_cnmp.sims.room.config import CNMPRoomEnv
 from lerobot_cnmp.sims.room.expert import RoomExpert
 from lerobot_cnmp.sims.room.model import DEFAULT_IMAGE_SIZE, MAX_CONDITIONS
@@ -24,11 +24,7 @@ SPEC = SimSpec(
     demo_length=DEMO_LENGTH,
     default_episodes=1000,
     default_conditions="start_end",
-    feature_names={
-        "action": ["x", "y"],
-        "agent_pos": ["x", "y"],
-        "environment_state": condition_feature_names(MAX_CONDITIONS, ["x", "y"]),
-    },
+    feature_names=point_mass_feature_names(MAX_CONDITIONS),
     episode_label=lambda env: env.task.layout,
     config_kwargs=_room_config_kwargs,
     features_note=(
