@@ -12,7 +12,9 @@ agrees with the sim). ``--sim_episodes`` rolls both out in the MetaWorld sim (se
     python -m bench.fewdemo_proxy --task push --demos 5 10 20 --steps 3000
     python -m bench.fewdemo_proxy --task push --demos 10 --methods promp cnmp --sim_episodes 50   # + sim success
 
-``--set key=value`` overrides a CNMPConfig field (JSON value) for the one-change experiments.
+``--set key=value`` overrides a CNMPConfig field (JSON value) for the one-change experiments; CNMP is built as
+``lerobot-train`` builds it, so the rules of ``lerobot_cnmp.policy.rules`` apply (``--set linear_task_term=false``:
+the network without the linear-in-γ term).
 """
 
 from __future__ import annotations

@@ -668,3 +668,46 @@ def test_mixture_parameter_names_are_the_checkpoints():
                      | {f"trunk.{i}.{p}" for i in (0, 2) for p in ("weight", "bias")}
                      | {f"decoders.{p}.{i}" for p in ("weights", "biases") for i in (0, 1)}
                      | {"gate.weight", "gate.bias"})
+
+
+# ---- the decoder term linear in γ (linear_task_term) ---------------------------------------------------------
+
+
+def test_linear_task_term_starts_at_zero_and_keeps_the_mlp_initialization():
+    torch.manual_seed(4)
+    plain = CNMP(sm_dim=2, task_dim=3, encoder_layers=(16,), decoder_layers=(16,), phase_frequencies=2)
+    torch.manual_seed(4)
+    lin = CNMP(sm_dim=2, task_dim=3, encoder_layers=(16,), decoder_layers=(16,), phase_frequencies=2,
+               linear_task_term=True)
+    assert set(lin.state_dict()) - set(plain.state_dict()) == {"task_gain"}
+    assert lin.task_gain.shape == (2, (1 + 5) * 3) and not lin.task_gain.any()
+    ctx, q = random_context(g=3), torch.rand(3, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(lin(ctx, q), plain(ctx, q), atol=0, rtol=0)
+        lin.task_gain.normal_()
+        shifted = lin(ctx, q)[0] - plain(ctx, q)[0]
+    # A(t)·γ by hand: φ = [1, t, sin kπt, cos kπt], A(t) = Σ_k φ_k A_k
+    phi = torch.cat([torch.ones(3, 4, 1), lin.phase_features(q)], -1)
+    a = lin.task_gain.reshape(2, 6, 3)
+    want = torch.einsum("bmk,dkg,bg->bmd", phi, a, ctx.task_params)
+    torch.testing.assert_close(shifted, want, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("freqs", [0, 3])
+def test_numpy_executor_equals_the_torch_model_with_the_linear_task_term(freqs):
+    torch.manual_seed(5)
+    m = CNMP(sm_dim=2, task_dim=2, encoder_layers=(16, 8), decoder_layers=(16, 16), phase_frequencies=freqs,
+             linear_task_term=True)
+    with torch.no_grad():
+        m.task_gain.normal_()
+    ctx, q = random_context(b=3, n=5, g=2), torch.rand(3, 7)
+    with torch.no_grad():
+        mean, std = m(ctx, q)
+    n_mean, n_std = NumpyCNMP(m)(ctx, q)
+    torch.testing.assert_close(n_mean, mean, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(n_std, std, atol=1e-5, rtol=1e-5)
+
+
+def test_linear_task_term_needs_gamma():
+    with pytest.raises(ValueError, match="needs task parameters"):
+        CNMP(sm_dim=2, task_dim=0, linear_task_term=True)

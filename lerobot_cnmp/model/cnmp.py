@@ -3,6 +3,7 @@
     r_i = E([t_i, γ, SM_i ⊙ mask_i, mask_i])          ``encode``
     r   = mean_i r_i                                   ``average``
     (μ_q, σ_q) = Q([t_q, γ, r])                        ``decode``
+    μ_q += A(t_q)·γ,  A(t) = Σ_k φ_k(t) A_k            ``task_gain`` (optional: ProMP's linear map from γ)
     loss = -log N(SM(t_q) | μ_q, σ_q)                  ``nll`` (Eq. 1), ``training_loss``
 
 Everything works on padded batches with validity masks; padded entries never change an output. A subclass
@@ -100,7 +101,10 @@ class CNMP(nn.Module):
     """Encoder E -> mean aggregation -> query network Q with a Gaussian output (pure torch).
 
     ``nll_beta`` > 0 trains with the β-NLL; ``dim_weights`` (a buffer, [D] or None) weights each SM dim's
-    NLL term. ``build_decoder``, ``decode`` and ``training_loss`` are the points a subclass overrides."""
+    NLL term. ``linear_task_term`` adds to μ a term linear in γ, A(t)·γ with A(t) = Σ_k φ_k(t) A_k over the
+    phase basis φ(t) = [1, t, sin kπt, cos kπt] (the parameter ``task_gain`` = [A_k], zero at the start): the
+    contextual ProMP's map from γ, which the MLP then corrects. ``build_decoder``, ``decode`` and
+    ``training_loss`` are the points a subclass overrides."""
 
     def __init__(
         self,
@@ -111,8 +115,11 @@ class CNMP(nn.Module):
         min_std: float = 0.01,
         phase_frequencies: int = 0,
         nll_beta: float = 0.0,
+        linear_task_term: bool = False,
     ):
         super().__init__()
+        if linear_task_term and not task_dim:
+            raise ValueError("linear_task_term needs task parameters γ (task_dim > 0): the term is linear in γ")
         self.sm_dim, self.task_dim, self.min_std, self.nll_beta = sm_dim, task_dim, min_std, nll_beta
         self.register_buffer("dim_weights", None, persistent=False)  # [D] NLL weights; None: all 1 (Eq. 1)
         self.register_buffer(
@@ -121,6 +128,8 @@ class CNMP(nn.Module):
         t_dim = 1 + 2 * phase_frequencies
         self.encoder = mlp(t_dim + task_dim + 2 * sm_dim, tuple(encoder_layers))
         self.build_decoder(t_dim + task_dim + encoder_layers[-1], (*decoder_layers, 2 * sm_dim))
+        # [D, (1 + t_dim) G]: the A_k of A(t)·γ; zeros (no RNG draw), so the MLP's initialization is unchanged
+        self.task_gain = nn.Parameter(torch.zeros(sm_dim, (1 + t_dim) * task_dim)) if linear_task_term else None
 
     def build_decoder(self, in_dim: int, widths: tuple[int, ...]) -> None:
         """Q: an MLP from [t_q, γ, r] (``in_dim``) through ``widths`` (the hidden layers, then 2 D: μ and σ's
@@ -176,7 +185,14 @@ class CNMP(nn.Module):
         its last layers)."""
         out = run_mlp(self.decoder, self._first_layer(self.decoder[0], r, query_phase, task_params), start=1)
         mean, raw = out.split(self.sm_dim, dim=-1)
+        if self.task_gain is not None:
+            mean = mean + self.linear_in_task(query_phase, task_params)
         return mean, self.min_std + F.softplus(raw)
+
+    def linear_in_task(self, query_phase: Tensor, task_params: Tensor) -> Tensor:
+        """A(t_q)·γ = Σ_k φ_k(t_q) A_k γ for every query, [B, M, D]; φ = [1, ``phase_features``]."""
+        phi = torch.cat([torch.ones_like(query_phase)[..., None], self.phase_features(query_phase)], dim=-1)
+        return F.linear((phi[..., :, None] * task_params[:, None, None, :]).flatten(-2), self.task_gain)
 
     def _first_layer(self, first: nn.Linear, r: Tensor, query_phase: Tensor, task_params: Tensor | None) -> Tensor:
         """A query network's first layer on [t_q, γ, r], [B, M, H]: W_t·t_q + (W_γr·[γ, r] + b), the second

@@ -32,6 +32,8 @@ class NumpyCNMP:
         t_dim = 1 + 2 * self.frequencies.size
         (w, b), self.decoder = decoder[0], decoder[1:]
         self.decoder_t, self.decoder_rest, self.decoder_bias = w[:t_dim], w[t_dim:], b
+        gain = getattr(model, "task_gain", None)
+        self.task_gain = None if gain is None else gain.detach().cpu().numpy().T.copy()  # [(1 + t_dim) G, D]
 
     def phase_features(self, t: np.ndarray) -> np.ndarray:
         t = t[..., None]
@@ -64,6 +66,10 @@ class NumpyCNMP:
         np.maximum(h, 0.0, out=h)
         out = self._mlp(h, self.decoder)  # Q
         mean, raw = out[..., : self.sm_dim], out[..., self.sm_dim :]
+        if self.task_gain is not None:  # A(t_q)·γ (CNMP.linear_in_task)
+            qp = query_phase.numpy()
+            phi = np.concatenate([np.ones((*qp.shape, 1), np.float32), self.phase_features(qp)], axis=-1)
+            mean = mean + (phi[..., :, None] * gamma[:, None, None, :]).reshape(*qp.shape, -1) @ self.task_gain
         return torch.from_numpy(np.ascontiguousarray(mean)), torch.from_numpy(self.min_std + np.logaddexp(0.0, raw))
 
 

@@ -179,6 +179,8 @@ class CNMPConfig(PreTrainedConfig):
         min_std: Floor of the predicted σ (normalized units): σ = min_std + softplus(raw).
         phase_frequencies: K > 0 adds sin/cos(k·π·t), k = 1..K, to the phase input of E and Q (Fourier
             features, for sharper timing); 0 feeds the raw phase t only, as in the paper.
+        linear_task_term: Add ProMP's linear map from γ to μ, A(t)·γ (``CNMP``'s ``task_gain``). None: by
+            the rule of :func:`lerobot_cnmp.policy.rules.linear_task_term` when training from a dataset, else off.
         n_experts: K, the number of query networks. 1: the paper's CNMP, one Gaussian decoder. K > 1: a
             mixture decoder (``mixture``), for demonstrations with modes the conditions do not decide.
         mixture: The mixture decoder's settings (:class:`MixtureConfig`).
@@ -231,6 +233,7 @@ class CNMPConfig(PreTrainedConfig):
     decoder_layers: tuple[int, ...] = (128, 128, 128)
     min_std: float = 0.01
     phase_frequencies: int = 0
+    linear_task_term: bool | None = None
     n_experts: int = 1
     mixture: MixtureConfig = field(default_factory=MixtureConfig)
 
@@ -290,8 +293,8 @@ class CNMPConfig(PreTrainedConfig):
         _check(self.min_std > 0, f"min_std must be > 0, got {self.min_std}")
         _check(0.0 <= self.nll_beta <= 1.0, f"nll_beta must be in [0, 1], got {self.nll_beta}")
         _check(self.commanded_loss_weight > 0, f"commanded_loss_weight must be > 0, got {self.commanded_loss_weight}")
-        _check(self.commanded_loss_weight == 1.0 or self.n_experts == 1, "commanded_loss_weight applies to the "
-               f"single decoder: use n_experts=1 or commanded_loss_weight=1, got n_experts={self.n_experts}")
+        _check(self.n_experts == 1 or (self.commanded_loss_weight == 1.0 and not self.linear_task_term), "commanded_loss"
+               f"_weight applies to the single decoder, as linear_task_term does: use n_experts=1, got {self.n_experts}")
         for name in ("demo_duration_s", "dataset_fps"):
             _check(getattr(self, name) is None or getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
         _check(_is_count(self.max_conditions), f"max_conditions must be an integer >= 0, got {self.max_conditions}")

@@ -45,6 +45,8 @@ def upgrade_config_dict(d: dict[str, Any]) -> dict[str, Any]:
       timeout. Otherwise only the flat fields that are not None are moved.
     - ``mixture_nll`` and ``gate_commit`` are dropped, with a warning if they held another value than the
       behaviour kept.
+    - A trained policy's config (``dataset_fps`` set) without ``linear_task_term``, written before that
+      setting existed, gets ``linear_task_term = false``: its network has no such term.
 
     A value already in a section (e.g. ``--policy.execution.pd_kp=0.5`` given with ``--policy.path``) wins
     over the flat one."""
@@ -54,6 +56,8 @@ def upgrade_config_dict(d: dict[str, Any]) -> dict[str, Any]:
         if value not in (None, kept):
             logger.warning("CNMP config: %s=%r is no longer an option (only %r remains); it set training only, "
                            "so the checkpoint acts as before", name, value, kept)
+    if d.get("dataset_fps") is not None and "linear_task_term" not in d:
+        d["linear_task_term"] = False
     _nest(d, "sampling", {n: d.pop(n) for n in FLAT_SAMPLING if n in d})
     _nest(d, "mixture", {n: d.pop(n) for n in FLAT_MIXTURE if n in d})
     flat = {n: d.pop(n) for n in FLAT_EXECUTION if n in d}

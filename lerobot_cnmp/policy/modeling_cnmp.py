@@ -19,6 +19,7 @@ from lerobot_cnmp.model.numpy_cnmp import NumpyTwin
 from lerobot_cnmp.policy import training
 from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
 from lerobot_cnmp.policy.inputs import observed_episode_inputs, observed_task_params
+from lerobot_cnmp.policy.rules import resolve_rules
 
 
 def _network_from_config(config: CNMPConfig) -> CNMP:
@@ -27,13 +28,15 @@ def _network_from_config(config: CNMPConfig) -> CNMP:
     shape = dict(sm_dim=config.sm_dim, task_dim=config.episode_dim, encoder_layers=config.encoder_layers,
                  decoder_layers=config.decoder_layers, min_std=config.min_std,
                  phase_frequencies=config.phase_frequencies)
+    if config.linear_task_term and config.episode_dim == 0:
+        raise ValueError("linear_task_term=true needs task parameters γ (the dataset/env gives none): set it to false")
     if config.n_experts > 1:
         return MixtureCNMP(**shape, n_experts=config.n_experts, gate_entropy_coef=config.mixture.gate_entropy_coef,
                            batch_entropy_coef=config.mixture.batch_entropy_coef,
                            shared_decoder_layers=config.mixture.shared_decoder_layers,
                            assignment_draws=config.mixture.assignment_draws,
                            unconditional_nll_coef=config.mixture.unconditional_nll_coef)
-    model = CNMP(**shape, nll_beta=config.nll_beta)
+    model = CNMP(**shape, nll_beta=config.nll_beta, linear_task_term=bool(config.linear_task_term))
     spec = config.spec
     if config.commanded_loss_weight != 1.0 and not spec.tied:
         weights = torch.ones(config.sm_dim)
@@ -73,6 +76,7 @@ class CNMPPolicy(PreTrainedPolicy):
         super().__init__(config)
         config.resolve_sm(dataset_meta.features if dataset_meta is not None else None)
         config.validate_features()
+        resolve_rules(config, from_dataset=dataset_meta is not None and not config.pretrained_path)
         self.config = config
         # One conv encoder per image feature; its embedding joins γ as the episode-level input of E and Q.
         self.image_encoders = nn.ModuleDict({
