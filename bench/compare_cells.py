@@ -55,6 +55,21 @@ PROMP_LABEL = ("open loop: movement_primitives' ProMP (31 RBFs per action dim, l
                "length, then the last action), whatever the robot senses")
 RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
 
+# the MetaWorld v3 tasks of the comparison and their short names (dataset datasets/cnmp_metaworld_<name>, configs
+# configs/<method>_metaworld_<name>.json, which differ from push's only in the dataset: tests/test_compare_policies.py)
+METAWORLD_TASKS = {"reach-v3": "reach", "push-v3": "push", "pick-place-v3": "pickplace",
+                   "coffee-push-v3": "coffeepush", "sweep-v3": "sweep"}
+
+
+def metaworld_cell(task: str, name: str) -> dict:
+    """A MetaWorld task's entry: our wrapper env, γ = object and goal positions (observation.task_params), which
+    ACT / Diffusion read from a renamed copy as observation.environment_state, and a contextual ProMP on γ."""
+    return {"dataset": f"datasets/cnmp_metaworld_{name}", "env": ["--env.type=cnmp_metaworld", f"--env.task={task}"],
+            "configs": {"cnmp": f"configs/cnmp_metaworld_{name}.json", "act": f"configs/act_cpu_metaworld_{name}.json",
+                        "diffusion": f"configs/diffusion_cpu_metaworld_{name}.json"},
+            "env_state_copy": {"act", "diffusion"}, "promp": "task_params"}
+
+
 TASKS = {
     "cnmp_obstacle2d": {
         "dataset": "datasets/cnmp_obstacle2d",
@@ -63,32 +78,8 @@ TASKS = {
                     "diffusion": "configs/diffusion_cpu_obstacle2d.json"},
         "promp": "conditions",  # the episode's conditions are points of the SM: ProMP is conditioned on them
     },
-    "cnmp_metaworld_reach": {
-        "dataset": "datasets/cnmp_metaworld_reach",
-        "env": ["--env.type=cnmp_metaworld", "--env.task=reach-v3"],
-        "configs": {"cnmp": "configs/cnmp_metaworld_reach.json", "act": "configs/act_cpu_metaworld_reach.json",
-                    "diffusion": "configs/diffusion_cpu_metaworld_reach.json"},
-        # ACT / Diffusion read γ as observation.environment_state: a renamed copy (see the docstring)
-        "env_state_copy": {"act", "diffusion"},
-        # a contextual ProMP over the demos' actions (MetaWorld's hand deltas + gripper), conditioned on γ
-        "promp": "task_params",
-    },
-    "cnmp_metaworld_push": {
-        "dataset": "datasets/cnmp_metaworld_push",
-        "env": ["--env.type=cnmp_metaworld", "--env.task=push-v3"],
-        "configs": {"cnmp": "configs/cnmp_metaworld_push.json", "act": "configs/act_cpu_metaworld_push.json",
-                    "diffusion": "configs/diffusion_cpu_metaworld_push.json"},
-        "env_state_copy": {"act", "diffusion"},
-        "promp": "task_params",
-    },
-    "cnmp_metaworld_pickplace": {
-        "dataset": "datasets/cnmp_metaworld_pickplace",
-        "env": ["--env.type=cnmp_metaworld", "--env.task=pick-place-v3"],
-        "configs": {"cnmp": "configs/cnmp_metaworld_pickplace.json", "act": "configs/act_cpu_metaworld_pickplace.json",
-                    "diffusion": "configs/diffusion_cpu_metaworld_pickplace.json"},
-        "env_state_copy": {"act", "diffusion"},
-        "promp": "task_params",
-    },
+    # MetaWorld: one entry per task, made by the same rule (metaworld_cell); configs identical but for the dataset
+    **{f"cnmp_metaworld_{name}": metaworld_cell(task, name) for task, name in METAWORLD_TASKS.items()},
     "cnmp_so101": {  # the third-party SO-101 pick and place (extra so101); γ is its own environment_state
         "dataset": "datasets/cnmp_so101",
         "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],

@@ -29,7 +29,7 @@ scratch. A failing seed is recorded as an error and the run ends with exit statu
 ```bash
 python -m bench.compare_policies --tasks cnmp_obstacle2d --methods cnmp act diffusion promp --demos 10 50
 python -m bench.compare_policies --tasks cnmp_metaworld_push --methods cnmp --demos 5 --seeds 0 1 2 --cap cnmp=300
-python -m bench.compare_policies --report   # outputs/compare/report.md, curves.json, docs/compare_policies.{png,md},
+python -m bench.compare_policies --report   # results/compare/report.md, curves.json, docs/compare_policies.{png,md},
                                             # docs/compare_curves_<task>.png
 ```
 """
@@ -49,7 +49,7 @@ from bench.compare_cells import (CAP_S, CURVE_EPISODES, HELDOUT_EPISODES, MARKS_
 from bench.compare_report import report
 from bench.compare_run import run_seed, save
 
-OUT = REPO / "outputs" / "compare"
+OUT = REPO / "results" / "compare"
 PLOT = REPO / "docs" / "compare_policies.png"
 
 

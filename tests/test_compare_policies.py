@@ -215,6 +215,21 @@ def test_commands(tmp_path):
             assert (cells.REPO / config).is_file(), config
 
 
+def test_metaworld_configs_are_one_rule_not_tuned_per_task():
+    """Every MetaWorld task's config of a method is push's with only the dataset and the job name changed, and
+    every task has its recorded dataset."""
+    for method, prefix in (("cnmp", "cnmp"), ("act", "act_cpu"), ("diffusion", "diffusion_cpu")):
+        ref = json.loads((cells.REPO / f"configs/{prefix}_metaworld_push.json").read_text())
+        for task, name in cells.METAWORLD_TASKS.items():
+            entry = cells.TASKS[f"cnmp_metaworld_{name}"]
+            cfg = json.loads((cells.REPO / entry["configs"][method]).read_text())
+            assert cfg["dataset"]["repo_id"].endswith(f"metaworld_{name}" + ("_envstate" if method != "cnmp" else ""))
+            assert f"--env.task={task}" in entry["env"]
+            assert (cells.REPO / entry["dataset"] / "meta" / "info.json").is_file(), entry["dataset"]
+            same = ("dataset", "job_name")
+            assert {k: v for k, v in cfg.items() if k not in same} == {k: v for k, v in ref.items() if k not in same}
+
+
 def test_a_tasks_episode_order(tmp_path):
     """cnmp_pickplace's cells take its grid's corners first; every order is a permutation of the episodes."""
     assert cells.episodes("cnmp_obstacle2d", 3) == [0, 1, 2]
