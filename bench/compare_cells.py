@@ -41,7 +41,8 @@ CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800}
 # form and deterministic on the fixed N episodes (no seed enters it), so a second seed would repeat the first
 N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1}
 FIRST_SEED = 1000  # the committed configs' seed; seed i of a cell is FIRST_SEED + i
-PROBE_STEPS = {"cnmp": 1000, "act": 100, "diffusion": 80}  # the rate probe's first try (~10-20 s on 2 CPU cores)
+PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150}  # the rate probe's first try (~40 s on one CPU core)
+PROBE_MIN_LOOP_S = 30  # a shorter probe is redone longer: its rate is taken after the warm-up (compare_run.steady_rate)
 PROMP_NOTE = ("ProMP: fitted in closed form (EM of movement_primitives) on the fixed first N episodes, deterministic: no "
               "training seed enters the fit: one fit per cell, its curve one point (the fit's seconds), its "
               "spread over seeds 0 by construction, not measured")

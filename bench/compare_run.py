@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from bench.common import REPO, provenance
-from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_STEPS, SEED, TASKS, CellError,
+from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_MIN_LOOP_S, PROBE_STEPS, SEED, TASKS, CellError,
                                  episodes, eval_command, fit_command, record_path, resume_command,
                                  train_command)
 
@@ -125,9 +125,22 @@ def prune(train_dir: Path, keep: set[int]) -> None:
             shutil.rmtree(checkpoint(train_dir, s).parent, ignore_errors=True)
 
 
-def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root: Path | None, env: dict) -> dict:
-    """The training loop's steps/s of a (task, method) on this machine: a probe ``lerobot-train`` of the cell
-    (first try PROBE_STEPS, longer until its loop takes >= 10 s), cached in ``<out>/rates.json``."""
+def steady_rate(log: Path, skip: float = 0.25) -> float | None:
+    """Steps/s of a finished bar after its first ``skip`` share of loop time (the data loader's and the
+    allocator's warm-up make the first seconds slower than the rest); None without a finished bar."""
+    loop = train_loop_s(log)
+    pts = [(n, t) for n, t in bar_points(log) if t >= skip * (loop or 0)]
+    if loop is None or len(pts) < 2 or pts[-1][1] <= pts[0][1]:
+        return None
+    return (pts[-1][0] - pts[0][0]) / (pts[-1][1] - pts[0][1])
+
+
+def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root: Path | None, env: dict,
+              min_loop_s: float = PROBE_MIN_LOOP_S) -> dict:
+    """The training loop's steady steps/s of a (task, method) on this machine: a probe ``lerobot-train`` of the
+    cell (first try PROBE_STEPS, longer until its loop takes >= ``min_loop_s``), its rate after the warm-up
+    (:func:`steady_rate`), cached in ``<out>/rates.json``. A short probe's rate would include the warm-up and
+    under-count the steps a method runs in its cap: its training would end before the cap."""
     cache = out / "rates.json"
     rates = json.loads(cache.read_text()) if cache.is_file() else {}
     key = f"{task}/{method}"
@@ -144,12 +157,16 @@ def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root
         loop = train_loop_s(log)
         if r["rc"] != 0 or loop is None:
             raise CellError(f"the rate probe failed (exit {r['rc']}), log {log}:\n{log_tail(log)}")
-        if loop >= 10:
+        if loop >= min_loop_s:
             break
-        probe_steps = int(probe_steps * 20 / max(loop, 1.0))
+        probe_steps = int(probe_steps * 1.5 * min_loop_s / max(loop, 1.0))
+    rate = steady_rate(log)
+    if rate is None or rate <= 0:
+        raise CellError(f"the rate probe's log {log} has no progress to measure a rate from:\n{log_tail(log)}")
     shutil.rmtree(probe_dir, ignore_errors=True)
-    rates[key] = {"steps_per_s": round(probe_steps / loop, 3), "probe_steps": probe_steps, "probe_loop_s": loop,
-                  "probe_command": shlex.join(cmd), "n_demos": n, "host_cpus": os.cpu_count(), "provenance": run_provenance()}
+    rates[key] = {"steps_per_s": round(rate, 3), "probe_steps": probe_steps, "probe_loop_s": loop,
+                  "mean_steps_per_s": round(probe_steps / loop, 3), "probe_command": shlex.join(cmd), "n_demos": n,
+                  "host_cpus": os.cpu_count(), "provenance": run_provenance()}
     cache.write_text(json.dumps(rates, indent=2))
     return rates[key]
 

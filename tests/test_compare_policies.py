@@ -59,11 +59,15 @@ class FakeCLIs:
             start = 0
         total, root = cfg["steps"], Path(cfg["output_dir"]) / "checkpoints"
         bars, saved = [], 0
-        for step in range(start + cfg["save_freq"], total + 1, cfg["save_freq"]):
+        stride = max(1, (total - start) // 20)  # the bar updates between checkpoints too
+        for step in range(start + 1, total + 1):
             done = step - start
-            t = round(done / RATE)
-            bars.append(f"Training: {100 * done // (total - start)}%|##| {done}/{total - start} "
-                        f"[{t // 60:02d}:{t % 60:02d}<00:10, {RATE}step/s]")
+            if done % stride == 0 or step % cfg["save_freq"] == 0:
+                t = round(done / RATE)
+                bars.append(f"Training: {100 * done // (total - start)}%|##| {done}/{total - start} "
+                            f"[{t // 60:02d}:{t % 60:02d}<00:10, {RATE}step/s]")
+            if step % cfg["save_freq"]:
+                continue
             ck = root / f"{step:06d}"
             (ck / "pretrained_model").mkdir(parents=True)
             (ck / "pretrained_model" / "config.json").write_text("{}")
@@ -168,6 +172,17 @@ def test_promp_is_one_fit_and_one_point(tmp_path, fake):
     (rec,) = rep.load_records(tmp_path)
     assert rec["seed"] == cells.FIRST_SEED and [(p["step"], p["loop_s"]) for p in rec["points"]] == [(0, 0.7)]
     assert "deterministic" in rep.report(tmp_path, tmp_path / "p.png")
+
+
+def test_the_rate_is_taken_after_the_warm_up(tmp_path):
+    """A bar whose first 20 s run 1 step/s and the rest 10 steps/s: the steady rate is 10, not the mean."""
+    log = tmp_path / "train.log"
+    pts = [(s, s) for s in range(0, 21, 5)] + [(20 + 10 * (t - 20), t) for t in range(25, 81, 5)]
+    total = pts[-1][0]
+    log.write_text("\r".join(f"Training: {100 * n // total}%|##| {n}/{total} [{t // 60:02d}:{t % 60:02d}<00:01, 1step/s]"
+                             for n, t in pts))
+    assert run.steady_rate(log) == pytest.approx(10.0)
+    assert total / run.train_loop_s(log) < 8  # the mean rate would under-count the steps of a cap
 
 
 def test_schedule_puts_every_mark_on_a_saved_step():
