@@ -32,16 +32,18 @@ CURVE_SEED = 200000  # the curve's evaluations: 20 episodes per checkpoint, seed
 CURVE_EPISODES = 20
 HELDOUT_EPISODES = 50
 
-METHODS = ("cnmp", "act", "diffusion", "promp")
+METHODS = ("cnmp", "act", "diffusion", "promp", "cnmp_noterm")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
+# ablations: a method's config with extra lerobot-train arguments, a cell of its own (not run unless named)
+VARIANTS = {"cnmp_noterm": ("cnmp", ["--policy.linear_task_term=false"])}  # CNMP without the linear γ term
 MARKS_S = (30, 60, 120, 300, 600, 1200, 1800)  # training-loop seconds at which a checkpoint is kept
 # training-loop cap per method (s): CNMP's curves flatten within a few minutes, ACT / Diffusion get 30 min
-CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800}
+CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800, "cnmp_noterm": 600}
 # training seeds per method: CNMP is cheap (3); ACT / Diffusion cost 30 min a seed (1); ProMP's fit is closed
 # form and deterministic on the fixed N episodes (no seed enters it), so a second seed would repeat the first
-N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1}
+N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1, "cnmp_noterm": 3}
 FIRST_SEED = 1000  # the committed configs' seed; seed i of a cell is FIRST_SEED + i
-PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150}  # the rate probe's first try (~40 s on one CPU core)
+PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150, "cnmp_noterm": 3000}  # the rate probe's first try (~40 s on one CPU core)
 PROBE_MIN_LOOP_S = 30  # a shorter probe is redone longer: its rate is taken after the warm-up (compare_run.steady_rate)
 PROMP_NOTE = ("ProMP: fitted in closed form (EM of movement_primitives) on the fixed first N episodes, deterministic: no "
               "training seed enters the fit: one fit per cell, its curve one point (the fit's seconds), its "
@@ -158,9 +160,19 @@ def _dataset_arg(dataset_root: Path | None) -> list[str]:
     return [f"--dataset.root={dataset_root.relative_to(REPO) if REPO in dataset_root.parents else dataset_root}"]
 
 
+def base_method(method: str) -> str:
+    """The method whose config a variant (``VARIANTS``) trains with; a method is its own base."""
+    return VARIANTS[method][0] if method in VARIANTS else method
+
+
+def config_of(task: str, method: str) -> str | None:
+    return TASKS[task].get("configs", {}).get(base_method(method))
+
+
 def train_command(task: str, method: str, n: int, seed: int, sched: dict, out_dir: Path,
                   dataset_root: Path | None = None) -> list[str]:
-    return [str(BIN / "lerobot-train"), f"--config_path={TASKS[task]['configs'][method]}", *_dataset_arg(dataset_root),
+    return [str(BIN / "lerobot-train"), f"--config_path={config_of(task, method)}", *_dataset_arg(dataset_root),
+            *VARIANTS.get(method, (None, []))[1],
             "--policy.device=cpu", f"--dataset.episodes=[{','.join(str(i) for i in episodes(task, n))}]",
             f"--steps={sched['steps']}", f"--save_freq={sched['save_freq']}", f"--seed={seed}",
             f"--job_name={task}_{method}_{n}demos_seed{seed}", f"--output_dir={out_dir}"]

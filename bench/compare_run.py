@@ -21,8 +21,8 @@ import time
 from pathlib import Path
 
 from bench.common import REPO, provenance
-from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_MIN_LOOP_S, PROBE_STEPS, SEED, TASKS, CellError,
-                                 episodes, eval_command, fit_command, record_path, resume_command,
+from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_MIN_LOOP_S, PROBE_STEPS, SEED,
+                                 TASKS, VARIANTS, CellError, config_of, episodes, eval_command, fit_command, record_path, resume_command,
                                  train_command)
 
 
@@ -287,7 +287,7 @@ def run_seed(task: str, method: str, n: int, seed: int, *, out: Path, schedule_f
     rec = json.loads(path.read_text()) if path.is_file() else {}
     if not rec:
         rec = {"task": task, "method": method, "n_demos": n, "seed": seed, "episodes": episodes(task, n),
-               "config": TASKS[task]["configs"].get(method), "provenance": run_provenance(), "points": []}
+               "config": config_of(task, method), "train_args": VARIANTS.get(method, (None, []))[1], "provenance": run_provenance(), "points": []}
     rec["status"] = "running"
     env = child_env()
     if method == "promp":

@@ -220,6 +220,10 @@ def test_commands(tmp_path):
     assert "--dataset.episodes=[0,1,2]" in cmd and f"--steps={sched['steps']}" in cmd and "--seed=7" in cmd
     assert f"--save_freq={sched['save_freq']}" in cmd and "--config_path=configs/act_cpu_obstacle2d.json" in cmd
     assert cells.resume_command(tmp_path)[-1] == "--resume=true"
+    abl = cells.train_command("cnmp_metaworld_push", "cnmp_noterm", 3, 7, sched, tmp_path / "train")
+    assert "--config_path=configs/cnmp_metaworld_push.json" in abl and "--policy.linear_task_term=false" in abl
+    assert not any("linear_task_term" in a for a in cells.train_command("cnmp_metaworld_push", "cnmp", 3, 7, sched,
+                                                                          tmp_path / "train"))
     ev = cells.eval_command("cnmp_metaworld_reach", "act", ckpt, 50, 10, tmp_path / "eval")
     assert f"--seed={cells.SEED}" in ev and "--eval.n_episodes=50" in ev
     assert any(a.startswith("--rename_map=") for a in ev)
