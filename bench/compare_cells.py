@@ -42,6 +42,10 @@ CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800, "cnmp_noterm": 600}
 # training seeds per method: CNMP is cheap (3); ACT / Diffusion cost 30 min a seed (1); ProMP's fit is closed
 # form and deterministic on the fixed N episodes (no seed enters it), so a second seed would repeat the first
 N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1, "cnmp_noterm": 3}
+# methods whose LeRobot preset has no learning-rate schedule (ACT: get_scheduler_preset() is None): a run the
+# probe under-counted is extended to the cap by resuming with more steps, the same run as a longer one
+CONSTANT_LR = {"act"}
+EXTEND_BELOW = 0.85  # ... when it used less than this share of its cap
 FIRST_SEED = 1000  # the committed configs' seed; seed i of a cell is FIRST_SEED + i
 PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150, "cnmp_noterm": 3000}  # the rate probe's first try (~40 s on one CPU core)
 PROBE_MIN_LOOP_S = 30  # a shorter probe is redone longer: its rate is taken after the warm-up (compare_run.steady_rate)
@@ -178,11 +182,12 @@ def train_command(task: str, method: str, n: int, seed: int, sched: dict, out_di
             f"--job_name={task}_{method}_{n}demos_seed{seed}", f"--output_dir={out_dir}"]
 
 
-def resume_command(train_dir: Path) -> list[str]:
-    """``lerobot-train --resume=true`` from the run's last checkpoint (its own train_config: steps, seed, data)."""
+def resume_command(train_dir: Path, steps: int | None = None) -> list[str]:
+    """``lerobot-train --resume=true`` from the run's last checkpoint (its own train_config: seed, data, steps
+    unless ``steps`` is given: a schedule extended to the cap, ``compare_run.extend_to_cap``)."""
     return [str(BIN / "lerobot-train"),
             f"--config_path={train_dir / 'checkpoints' / 'last' / 'pretrained_model' / 'train_config.json'}",
-            "--resume=true"]
+            *([f"--steps={steps}"] if steps is not None else []), "--resume=true"]
 
 
 def fit_command(task: str, n: int, out_dir: Path) -> list[str]:

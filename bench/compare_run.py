@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from bench.common import REPO, provenance
-from bench.compare_cells import (CURVE_EPISODES, CURVE_SEED, HELDOUT_EPISODES, PROBE_MIN_LOOP_S, PROBE_STEPS, SEED,
+from bench.compare_cells import (CONSTANT_LR, CURVE_EPISODES, EXTEND_BELOW, CURVE_SEED, HELDOUT_EPISODES, PROBE_MIN_LOOP_S, PROBE_STEPS, SEED,
                                  TASKS, VARIANTS, CellError, config_of, episodes, eval_command, fit_command, record_path, resume_command,
                                  train_command)
 
@@ -167,7 +167,12 @@ def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root
     rates[key] = {"steps_per_s": round(rate, 3), "probe_steps": probe_steps, "probe_loop_s": loop,
                   "mean_steps_per_s": round(probe_steps / loop, 3), "probe_command": shlex.join(cmd), "n_demos": n,
                   "host_cpus": os.cpu_count(), "provenance": run_provenance()}
-    cache.write_text(json.dumps(rates, indent=2))
+    # another run sharing ``out`` may have added its rates since this one read the file: merge, then replace
+    merged = json.loads(cache.read_text()) if cache.is_file() else {}
+    merged[key] = rates[key]
+    tmp = cache.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(merged, indent=2))
+    tmp.replace(cache)
     return rates[key]
 
 
@@ -193,6 +198,28 @@ def checkpoint_times(attempts: list[dict], steps: list[int]) -> dict:
     return times
 
 
+def extend_to_cap(rec: dict) -> bool:
+    """For a method without a learning-rate schedule (``CONSTANT_LR``), whose finished run used less than
+    ``EXTEND_BELOW`` of its cap (the probe's rate was too low: the machine was busier during the probe), extend
+    the schedule to the cap at the run's own measured rate, with the marks it did not reach as new checkpoints
+    (``extend_<s>``); the run then resumes with ``--steps`` = the new total, which for a constant learning rate is
+    the longer run itself. Returns whether the schedule was extended (at most once)."""
+    sched, tr = rec["schedule"], rec["train"]
+    loop = tr["checkpoint_loop_s"].get(str(sched["steps"]))
+    if rec["method"] not in CONSTANT_LR or "extended" in sched or not loop or loop >= EXTEND_BELOW * sched["cap_s"]:
+        return False
+    rate, f = sched["steps"] / loop, sched["save_freq"]
+    target = max(sched["steps"] + f, f * round(sched["cap_s"] * rate / f))
+    marks = {f"extend_{m}": min(target, max(sched["steps"] + f, f * round(m * rate / f)))
+             for m in map(int, sched["marks"]) if loop < m < sched["cap_s"]}
+    marks[f"extend_{sched['cap_s']}"] = target
+    sched["extended"] = {"from_steps": sched["steps"], "from_loop_s": loop, "measured_steps_per_s": round(rate, 3),
+                         "steps": target}
+    sched["marks"].update(marks)
+    sched["steps"] = target
+    return True
+
+
 def train(rec: dict, path: Path, work: Path, dataset_root: Path | None, env: dict) -> None:
     """Train (or resume) until the checkpoint at the schedule's last step exists; record each attempt (before
     it starts, so a run killed with it can still time its checkpoints) and every checkpoint's loop seconds."""
@@ -202,7 +229,7 @@ def train(rec: dict, path: Path, work: Path, dataset_root: Path | None, env: dic
     while not tr["finished"]:
         done = checkpoint_steps(train_dir)
         if done and tr["attempts"]:
-            start, cmd = done[-1], resume_command(train_dir)
+            start, cmd = done[-1], resume_command(train_dir, sched["steps"])
         else:
             start = 0
             shutil.rmtree(train_dir, ignore_errors=True)  # lerobot-train refuses an existing output dir
@@ -222,6 +249,9 @@ def train(rec: dict, path: Path, work: Path, dataset_root: Path | None, env: dic
         save(rec, path)
         if r["rc"] != 0 and not tr["finished"]:
             raise CellError(f"lerobot-train failed (exit {r['rc']}), log {log}:\n{log_tail(log)}")
+        if tr["finished"] and extend_to_cap(rec):
+            tr["finished"], keep = False, set(sched["marks"].values())
+            save(rec, path)
     tr["loop_s"] = tr["checkpoint_loop_s"].get(str(sched["steps"]))
     tr["peak_rss_mb"] = max((a.get("peak_rss_mb") or 0) for a in tr["attempts"])
 

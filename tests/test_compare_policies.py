@@ -53,6 +53,8 @@ class FakeCLIs:
             cfg_file = Path(_arg(cmd, "config_path"))
             cfg = json.loads(cfg_file.read_text())
             start = json.loads((cfg_file.parents[1] / "training_state" / "training_step.json").read_text())["step"]
+            if any(a.startswith("--steps=") for a in cmd):
+                cfg["steps"] = int(_arg(cmd, "steps"))
         else:
             cfg = {"steps": int(_arg(cmd, "steps")), "save_freq": int(_arg(cmd, "save_freq")),
                    "output_dir": _arg(cmd, "output_dir"), "seed": int(_arg(cmd, "seed")), "dataset": {"root": "d"}}
@@ -164,6 +166,26 @@ def test_a_cut_training_resumes_and_keeps_its_clock(tmp_path, fake):
     assert rec["heldout"]["step"] == 1200 and rec["heldout"]["pc_success"] == 70.0
     probes = [c for c in fake.commands if "rate_probes" in " ".join(c)]
     assert len(probes) == 1  # the rate is measured once per task and method
+
+
+def test_an_act_run_the_probe_under_counted_is_extended_to_its_cap(tmp_path, fake):
+    """ACT (no learning-rate schedule) scheduled at half its real rate ends at half its cap: it resumes with
+    --steps for the whole cap at its measured rate, and the marks it had not reached become checkpoints."""
+    args = ["--tasks", "cnmp_obstacle2d", "--methods", "act", "--demos", "5", "--marks", "30", "60", "120",
+            "--cap", "act=120", "--no_latency", "--curve_episodes", "4", "--n_episodes", "6", "--rate", "act=5"]
+    assert cp.main([*args, "--out", str(tmp_path)]) == 0
+    rec = json.loads(cells.record_path(tmp_path, "cnmp_obstacle2d", "act", 5, 1000).read_text())
+    sched = rec["schedule"]
+    assert sched["extended"]["from_steps"] == 600 and sched["extended"]["from_loop_s"] == 60
+    assert sched["steps"] == 1200 and rec["train"]["loop_s"] == 120
+    resumed = [c for c in fake.commands if "--resume=true" in c]
+    assert len(resumed) == 1 and "--steps=1200" in resumed[0]
+    assert [p["loop_s"] for p in rec["points"]] == [15, 30, 60, 120]  # 30, 60, 120 s marks at 5 steps/s, + the cap
+    # CNMP's schedule (a learning-rate decay over --steps) is never extended
+    cnmp = [{"act": "cnmp", "act=120": "cnmp=120", "act=5": "cnmp=5"}.get(a, a) for a in args]
+    assert cp.main([*cnmp, "--out", str(tmp_path)]) == 0
+    rec = json.loads(cells.record_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5, 1000).read_text())
+    assert "extended" not in rec["schedule"] and rec["train"]["loop_s"] == 60
 
 
 def test_promp_is_one_fit_and_one_point(tmp_path, fake):
