@@ -13,8 +13,9 @@ report :mod:`bench.compare_report`):
    such that every mark is a saved step (the checkpoints between marks are deleted as it goes);
 3. evaluates every kept checkpoint with stock ``lerobot-eval`` on 20 episodes (``--seed=200000``): the curve,
    success vs measured training-loop seconds (LeRobot's progress bar);
-4. evaluates the curve's best checkpoint on the 50 held-out episodes (``--seed=100000``, as before) and times its
-   ``select_action`` (p50 / p95 alone and with the processors, LeRobot's rollout order).
+4. evaluates the curve's best checkpoint on the 50 held-out episodes (``--seed=100000``, as before) and, for the
+   cell's first seed (the others have the same network size), times its ``select_action`` (p50 / p95 alone and
+   with the processors, LeRobot's rollout order).
 
 ProMP (``--methods promp``; conditioned on the episode's SM points or, on a task with γ, on γ) is fitted in
 closed form by ``lerobot-cnmp-fit-promp``: one fit per cell (no seed enters it), its curve one point. ACT and
@@ -87,7 +88,8 @@ def run(args) -> int:
                 if method in TASKS[task].get("no_cells", {}):
                     print(f"skip {task} {method}: no cell, {TASKS[task]['no_cells'][method]}", flush=True)
                     continue
-                for seed in seeds_for(method, args.seeds, n_seeds):
+                seeds = seeds_for(method, args.seeds, n_seeds)
+                for seed in seeds:
                     path = record_path(args.out, task, method, n, seed)
                     if finished(path) and not args.force:
                         print(f"skip {task} {method} {n} demos seed {seed}: done ({path}; --force reruns it)", flush=True)
@@ -105,7 +107,8 @@ def run(args) -> int:
                     try:
                         rec = run_seed(task, method, n, seed, out=args.out, schedule_for=schedule_for,
                                        curve_episodes=args.curve_episodes, heldout_episodes=args.n_episodes,
-                                       batch_size=args.batch_size, latency=not args.no_latency)
+                                       batch_size=args.batch_size,
+                                       latency=not args.no_latency and seed == seeds[0])  # one network size a cell
                     except (Exception, SystemExit) as e:  # noqa: BLE001 - recorded in the seed's file; the run ends non-zero
                         rec = json.loads(path.read_text()) if path.is_file() else {}
                         rec.update({"task": task, "method": method, "n_demos": n, "seed": seed, "status": "error",

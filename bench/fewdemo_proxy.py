@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.compare_cells import METAWORLD_TASKS
+
 REPO = Path(__file__).resolve().parent.parent
 HELD_OUT = list(range(30, 50))
 
@@ -143,7 +145,7 @@ def sim_success(policy, task: str, n_episodes: int, seed: int = 100000, ep_len: 
     policy's own execution loop; also the mean final hand-to-goal and object-to-goal distances."""
     from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv
 
-    name = {"reach": "reach-v3", "push": "push-v3", "pickplace": "pick-place-v3"}[task]
+    name = {short: full for full, short in METAWORLD_TASKS.items()}[task]
     env = MetaWorldEnv(task=name, terminate_on_success=True, max_episode_steps=ep_len)
     wins = 0
     for i in range(n_episodes):
@@ -237,7 +239,7 @@ def run(task: str, demos: list[int], steps: int, batch_size: int, seeds: list[in
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="push", choices=["reach", "push", "pickplace"])
+    p.add_argument("--task", default="push", choices=list(METAWORLD_TASKS.values()))
     p.add_argument("--demos", type=int, nargs="+", default=[5, 10, 20])
     p.add_argument("--steps", type=int, default=9000)
     p.add_argument("--batch_size", type=int, default=8)
