@@ -200,7 +200,9 @@ def fit_command(task: str, n: int, out_dir: Path) -> list[str]:
 def eval_command(task: str, method: str, ckpt: Path, n_episodes: int, batch_size: int, out_dir: Path,
                  seed: int = SEED) -> list[str]:
     cmd = [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", *TASKS[task]["env"], f"--eval.n_episodes={n_episodes}",
-           f"--eval.batch_size={min(batch_size, n_episodes)}", "--policy.device=cpu", f"--seed={seed}",
+           # one process a cell: async envs would start batch_size workers and take the core of the cell beside it
+           f"--eval.batch_size={min(batch_size, n_episodes)}", "--eval.use_async_envs=false", "--policy.device=cpu",
+           f"--seed={seed}",
            f"--output_dir={out_dir}"]
     if method in TASKS[task].get("env_state_copy", ()):
         cmd.append("--rename_map=" + json.dumps(RENAME_ENV_STATE))
