@@ -187,6 +187,8 @@ def checkpoint_times(attempts: list[dict], steps: list[int]) -> dict:
     """Training-loop seconds of each checkpoint step: an attempt's bar time plus the time of the checkpoint it
     resumed from; a later attempt's figure replaces an earlier one (it redid the steps after the cut)."""
     times: dict[str, float | None] = {}
+    # an attempt's start step is timed too: it was the last checkpoint when the run was cut, pruned since
+    steps = sorted(set(steps) | {a["start_step"] for a in attempts if a["start_step"]})
     for a in attempts:
         start_s = 0.0 if a["start_step"] == 0 else times.get(str(a["start_step"]))
         bar = bar_points(Path(a["log"]))
@@ -226,6 +228,11 @@ def train(rec: dict, path: Path, work: Path, dataset_root: Path | None, env: dic
     sched, train_dir = rec["schedule"], work / "train"
     tr = rec.setdefault("train", {"attempts": [], "checkpoint_loop_s": {}, "finished": False})
     keep = set(sched["marks"].values())
+    if tr["finished"] and tr["attempts"]:  # a rerun of a finished training: re-time it, extend it if it is short
+        tr["checkpoint_loop_s"] = checkpoint_times(tr["attempts"], checkpoint_steps(train_dir))
+        if extend_to_cap(rec):
+            tr["finished"], keep = False, set(sched["marks"].values())
+        save(rec, path)
     while not tr["finished"]:
         done = checkpoint_steps(train_dir)
         if done and tr["attempts"]:

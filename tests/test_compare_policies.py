@@ -168,6 +168,17 @@ def test_a_cut_training_resumes_and_keeps_its_clock(tmp_path, fake):
     assert len(probes) == 1  # the rate is measured once per task and method
 
 
+def test_a_resume_from_a_pruned_checkpoint_keeps_its_clock(tmp_path):
+    """The checkpoint a run was cut at (not a mark, pruned once later ones exist) still times the resumed
+    attempt: its steps' loop seconds continue from the cut."""
+    bar = "Training: {p}%|##| {n}/{total} [00:{t:02d}<00:10, 10step/s]"
+    first, second = tmp_path / "train.log", tmp_path / "train1.log"
+    first.write_text("\r".join(bar.format(p=k * 10, n=k * 100, total=1000, t=k * 10 // 10) for k in (1, 3, 5)) + "\nKilled")
+    second.write_text("\r".join(bar.format(p=k * 20, n=k * 100, total=500, t=k * 10 // 10) for k in (1, 3, 5)))
+    attempts = [{"start_step": 0, "log": str(first)}, {"start_step": 500, "log": str(second)}]
+    assert run.checkpoint_times(attempts, [300, 1000]) == {"300": 3.0, "500": 5.0, "1000": 10.0}
+
+
 def test_an_act_run_the_probe_under_counted_is_extended_to_its_cap(tmp_path, fake):
     """ACT (no learning-rate schedule) scheduled at half its real rate ends at half its cap: it resumes with
     --steps for the whole cap at its measured rate, and the marks it had not reached become checkpoints."""
