@@ -41,7 +41,8 @@ def seed_summary(rec: dict) -> dict:
     t90 = next((p["loop_s"] for p in pts if top and p["pc_success"] >= 0.9 * top), None)
     near = min(pts, key=lambda p: abs(p["loop_s"] - 120), default=None)
     at_2min = near["pc_success"] if near and 80 <= near["loop_s"] <= 180 else None
-    return {"seed": rec["seed"], "best": rec.get("heldout", {}).get("pc_success"), "best_step": rec.get("heldout", {}).get("step"),
+    loop, cap = rec.get("train", {}).get("loop_s"), rec.get("schedule", {}).get("cap_s")
+    return {"seed": rec["seed"], "loop_s": loop, "cap_s": cap, "best": rec.get("heldout", {}).get("pc_success"), "best_step": rec.get("heldout", {}).get("step"),
             "best_loop_s": rec.get("heldout", {}).get("loop_s"), "curve_max": top, "t90_s": t90, "at_2min": at_2min,
             "curve": [[p["loop_s"], p["pc_success"]] for p in pts]}
 
@@ -79,7 +80,9 @@ def cell_summaries(recs: list[dict]) -> list[dict]:
                     "seeds": [s["seed"] for s in ok], "not_finished": sorted(r["seed"] for r in rs if r.get("status") != "ok"),
                     "errors": [str(r.get("error", "")).splitlines()[0][:120] for r in rs if r.get("status") == "error"],
                     "best": spread([s["best"] for s in ok]), "t90_s": spread([s["t90_s"] for s in ok]),
-                    "at_2min": spread([s["at_2min"] for s in ok]), "per_seed": ok, "mean_curve": mean_curve(ok)})
+                    "at_2min": spread([s["at_2min"] for s in ok]), "loop_s": spread([s["loop_s"] for s in ok]),
+                    "cap_s": max((s["cap_s"] or 0 for s in ok), default=None) or None,
+                    "per_seed": ok, "mean_curve": mean_curve(ok)})
     return out
 
 
@@ -115,11 +118,13 @@ def summary_table(cells: list[dict]) -> str:
 
 def cell_table(cells: list[dict]) -> str:
     """Every cell: seeds, best, time to 90 %, the 2-minute point, and what did not finish."""
-    lines = ["| task | method | demos | seeds | best (held-out) | time to 90 % (s) | 2-min point | curve points "
-             "| not finished |", "|---|---|---:|---|---:|---:|---:|---:|---|"]
+    lines = ["| task | method | demos | seeds | best (held-out) | time to 90 % (s) | 2-min point | training loop "
+             "(s) / cap | curve points | not finished |", "|---|---|---:|---|---:|---:|---:|---:|---:|---|"]
     for c in cells:
+        cap = f" / {c['cap_s']}" if c.get("cap_s") else ""
         lines.append(f"| {c['task']} | {c['method']} | {c['n_demos']} | {','.join(map(str, c['seeds'])) or '–'} | "
-                     f"{_ms(c['best'])} | {_ms(c['t90_s'])} | {_ms(c['at_2min'])} | {len(c['mean_curve'])} | "
+                     f"{_ms(c['best'])} | {_ms(c['t90_s'])} | {_ms(c['at_2min'])} | {_ms(c.get('loop_s'))}{cap} | "
+                     f"{len(c['mean_curve'])} | "
                      f"{', '.join(map(str, c['not_finished'])) or ''}"
                      f"{(': ' + c['errors'][0].replace('|', '/')) if c['errors'] else ''} |")
     return "\n".join(lines)
