@@ -26,7 +26,8 @@ class HubUnavailableError(RuntimeError):
     """The Hub cannot be reached (offline mode or no connection); nothing was uploaded."""
 
 
-def _require_online(what: str) -> None:
+def require_online(what: str) -> None:
+    """Raise HubUnavailableError, before any work, when the Hub is in offline mode (a push could not happen)."""
     from huggingface_hub import constants
 
     if constants.HF_HUB_OFFLINE:
@@ -57,7 +58,7 @@ def push_dataset(root: str | Path, repo_id: str, private: bool = False) -> str:
     root = Path(root)
     if not (root / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset folder (no meta/info.json)")
-    _require_online(f"dataset {root}")
+    require_online(f"dataset {root}")
     readme = root / "README.md"
     description = card_body(readme.read_text()) if readme.is_file() else None
     ds = LeRobotDataset(repo_id, root=root)
@@ -80,7 +81,7 @@ def push_checkpoint(checkpoint: str | Path, repo_id: str, private: bool = False,
 
     checkpoint = Path(checkpoint)
     policy, _, _ = load_pretrained(checkpoint)  # a CNMP checkpoint with its processors, or a clear error
-    _require_online(f"checkpoint {checkpoint}")
+    require_online(f"checkpoint {checkpoint}")
     dataset = None
     train_cfg = checkpoint / "train_config.json"
     if train_cfg.is_file():

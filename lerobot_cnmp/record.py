@@ -381,12 +381,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--private", action="store_true", help="with --push_to_hub: a private repository")
     args = parser.parse_args(argv)
     if args.push_to_hub:
-        from lerobot_cnmp.hub import _require_online
+        from lerobot_cnmp.hub import require_online
 
         if args.repo_id is None:
             parser.error("--push_to_hub needs --repo_id (e.g. you/my_cnmp_dataset)")
         try:  # fail before recording, not after
-            _require_online(f"dataset {args.root}")
+            require_online(f"dataset {args.root}")
         except RuntimeError as e:
             print(f"error: {e}", file=sys.stderr)
             return 1
