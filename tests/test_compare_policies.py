@@ -241,6 +241,16 @@ def test_method_options_are_checked(tmp_path, bad):
         cp.main(["--tasks", "cnmp_obstacle2d", "--cap", bad, "--out", str(tmp_path)])
 
 
+def test_a_missing_package_stops_the_run_before_any_cell(monkeypatch, tmp_path, fake):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name == "diffusers" else real(name))
+    with pytest.raises(SystemExit, match="diffusers not installed"):
+        cp.main(["--tasks", "cnmp_metaworld_push", "--methods", "cnmp", "diffusion", "--out", str(tmp_path)])
+    assert not fake.commands
+
+
 def test_report_without_results_is_an_error(tmp_path):
     with pytest.raises(SystemExit):
         rep.report(tmp_path, tmp_path / "p.png")
