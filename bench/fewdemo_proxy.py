@@ -65,6 +65,22 @@ def build_cnmp(task: str, overrides: dict):
     return make_policy(cfg, ds_meta=meta), raw
 
 
+def add_gamma_noise(model, sigma: float) -> None:
+    """A candidate regularizer, screened here and not in the package: Gaussian noise of std ``sigma`` on the
+    normalized γ of every training draw (for the linear term, a ridge in expectation)."""
+    import dataclasses
+
+    loss = model.training_loss
+
+    def noisy(context, targets, draws=1):
+        if context.task_params is not None:
+            context = dataclasses.replace(context, task_params=context.task_params
+                                          + sigma * torch.randn_like(context.task_params))
+        return loss(context, targets, draws)
+
+    model.training_loss = noisy
+
+
 def train_cnmp(policy, episodes: list[int], steps: int, batch_size: int, seed: int) -> float:
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -195,7 +211,7 @@ def drift(pred_actions: list[np.ndarray], eps: dict) -> float:
 
 
 def run(task: str, demos: list[int], steps: int, batch_size: int, seeds: list[int], overrides: dict,
-        methods: list[str], sim_episodes: int = 0, open_loop_too: bool = False) -> list[dict]:
+        methods: list[str], sim_episodes: int = 0, open_loop_too: bool = False, gamma_noise: float = 0.0) -> list[dict]:
     from lerobot_cnmp.promp.baselines import ProMPBaseline
 
     eps = load_episodes(REPO / f"datasets/cnmp_metaworld_{task}")
@@ -217,13 +233,15 @@ def run(task: str, demos: list[int], steps: int, batch_size: int, seeds: list[in
             for seed in seeds:
                 torch.manual_seed(seed)  # the initialization follows the seed too
                 policy, _ = build_cnmp(task, overrides)
+                if gamma_noise:
+                    add_gamma_noise(policy.model, gamma_noise)
                 secs = train_cnmp(policy, train, steps, batch_size, seed)
                 spec = policy.config.spec
                 cmd = list(spec.commanded)
                 preds = [cnmp_predict(policy, eps[e])[:, cmd] for e in HELD_OUT]
                 fb = [cnmp_feedback(policy, eps[e])[:, cmd] for e in HELD_OUT]
                 rows.append({"task": task, "n": n, "method": "cnmp", "seed": seed, "steps": steps,
-                             "overrides": overrides, "rmse": score(preds, eps, act_std),
+                             "overrides": overrides, "gamma_noise": gamma_noise, "rmse": score(preds, eps, act_std),
                              "rmse_feedback": score(fb, eps, act_std), "drift": drift(preds, eps), "train_s": round(secs, 1)})
                 if sim_episodes:
                     rows[-1]["sim_success"] = sim_success(policy, task, sim_episodes)
@@ -248,6 +266,7 @@ def main(argv=None) -> int:
     p.add_argument("--sim_episodes", type=int, default=0, help="also roll CNMP out in the sim (seeds 100000+)")
     p.add_argument("--open_loop_too", action="store_true", help="also roll out without online feedback")
     p.add_argument("--set", action="append", default=[], help="CNMPConfig override key=JSON value")
+    p.add_argument("--gamma_noise", type=float, default=0.0, help="screen: noise std on the normalized γ in training")
     args = p.parse_args(argv)
     overrides = {}
     for s in args.set:
@@ -257,7 +276,8 @@ def main(argv=None) -> int:
             overrides[k] = json.loads(v)
         except json.JSONDecodeError:
             overrides[k] = v
-    run(args.task, args.demos, args.steps, args.batch_size, args.seeds, overrides, args.methods, args.sim_episodes, args.open_loop_too)
+    run(args.task, args.demos, args.steps, args.batch_size, args.seeds, overrides, args.methods, args.sim_episodes, args.open_loop_too,
+        args.gamma_noise)
     return 0
 
 
