@@ -322,9 +322,11 @@ def run_seed(task: str, method: str, n: int, seed: int, *, out: Path, schedule_f
     path = record_path(out, task, method, n, seed)
     work = path.with_suffix("")
     rec = json.loads(path.read_text()) if path.is_file() else {}
-    if not rec:
-        rec = {"task": task, "method": method, "n_demos": n, "seed": seed, "episodes": episodes(task, n),
-               "config": config_of(task, method), "train_args": VARIANTS.get(method, (None, []))[1], "provenance": run_provenance(), "points": []}
+    # a record that failed early (e.g. in the rate probe) lacks what later steps fill: complete it, keep the rest
+    for key, value in {"task": task, "method": method, "n_demos": n, "seed": seed, "episodes": episodes(task, n),
+                       "config": config_of(task, method), "train_args": VARIANTS.get(method, (None, []))[1],
+                       "provenance": run_provenance(), "points": []}.items():
+        rec.setdefault(key, value)
     rec["status"] = "running"
     env = child_env()
     if method == "promp":

@@ -199,6 +199,16 @@ def test_an_act_run_the_probe_under_counted_is_extended_to_its_cap(tmp_path, fak
     assert "extended" not in rec["schedule"] and rec["train"]["loop_s"] == 60
 
 
+def test_a_seed_that_failed_in_its_probe_resumes(tmp_path, fake):
+    """A record written by a failure before any curve point (a missing package in the rate probe) resumes."""
+    path = cells.record_path(tmp_path, "cnmp_obstacle2d", "cnmp", 5, 1000)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"task": "cnmp_obstacle2d", "status": "error", "error": "ImportError: diffusers"}))
+    assert cp.main([*ARGS, "--seeds", "1000", "--out", str(tmp_path)]) == 0
+    rec = json.loads(path.read_text())
+    assert rec["status"] == "ok" and len(rec["points"]) == 3
+
+
 def test_promp_is_one_fit_and_one_point(tmp_path, fake):
     assert cp.main(["--tasks", "cnmp_obstacle2d", "--methods", "promp", "--demos", "5", "--no_latency",
                     "--curve_episodes", "4", "--n_episodes", "6", "--out", str(tmp_path)]) == 0
