@@ -85,7 +85,8 @@ def check_installed(tasks: list[str], methods: list[str]) -> None:
     """Stop before the first cell when a package the run needs is missing (not after hours of other cells)."""
     import importlib.util
 
-    wanted = [*methods, *(t.split("_metaworld")[0] + "_metaworld" if "_metaworld_" in t else t for t in tasks)]
+    env_types = [a.removeprefix("--env.type=") for t in tasks for a in TASKS[t]["env"] if a.startswith("--env.type=")]
+    wanted = [*methods, *env_types]
     missing = sorted({NEEDS[w] for w in wanted if w in NEEDS and importlib.util.find_spec(NEEDS[w]) is None})
     if missing:
         raise SystemExit(f"error: {', '.join(missing)} not installed: pip install -e '.[compare]' (and '.[so101]' for "
