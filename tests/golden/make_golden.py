@@ -5,8 +5,8 @@ policy on its dataset, takes a few optimizer steps (so the weights are not an in
 checkpoint (config.json + model.safetensors + processors, and the initial weights as init.safetensors) under
 tests/golden/<config>/ and records the training losses and the
 actions of `select_action` and `predict_action_chunk` on a fixed observation sequence (the dataset's first
-episode) in actions.npz. The test reloads each checkpoint with the current code and requires bit-identical
-actions.
+episode) in actions.npz. The test reloads each checkpoint with the current code and requires the same actions
+(up to float rounding: see tests/test_golden.py).
 
     python tests/golden/make_golden.py            # all configs
 """
