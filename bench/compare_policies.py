@@ -86,7 +86,8 @@ def check_installed(tasks: list[str], methods: list[str]) -> None:
     import importlib.util
 
     env_types = [a.removeprefix("--env.type=") for t in tasks for a in TASKS[t]["env"] if a.startswith("--env.type=")]
-    wanted = [*methods, *env_types]
+    with_cells = [m for m in methods if any(m not in TASKS[t].get("no_cells", {}) for t in tasks)]  # others are skipped
+    wanted = [*with_cells, *env_types]
     missing = sorted({NEEDS[w] for w in wanted if w in NEEDS and importlib.util.find_spec(NEEDS[w]) is None})
     if missing:
         raise SystemExit(f"error: {', '.join(missing)} not installed: pip install -e '.[compare]' (and '.[so101]' for "

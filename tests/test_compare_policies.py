@@ -261,6 +261,17 @@ def test_a_missing_package_stops_the_run_before_any_cell(monkeypatch, tmp_path, 
     assert not fake.commands
 
 
+def test_a_method_without_cells_on_the_tasks_needs_no_package(monkeypatch):
+    """cnmp_weights has no Diffusion cells: a missing diffusers does not stop it (it stops push, which has them)."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name == "diffusers" else real(name))
+    cp.check_installed(["cnmp_weights"], ["cnmp", "diffusion"])
+    with pytest.raises(SystemExit, match="diffusers"):
+        cp.check_installed(["cnmp_weights", "cnmp_metaworld_push"], ["cnmp", "diffusion"])
+
+
 def test_report_without_results_is_an_error(tmp_path):
     with pytest.raises(SystemExit):
         rep.report(tmp_path, tmp_path / "p.png")
