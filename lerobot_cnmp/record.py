@@ -4,7 +4,9 @@ Generic over the sims of :data:`lerobot_cnmp.sims.SIMS`: the sim's ``EnvConfig``
 drives it for ``demo_length`` steps, and each frame stores the observation *before* the action together with
 the action, as LeRobot records. Every demo must succeed (``info["is_success"]`` at its last step). Vector
 features are stored as float32; image features (``pixels/<name>`` in the EnvConfig, uint8 H x W x C) as
-PNG frames (dtype ``image``, no video encoding).
+PNG frames (dtype ``image``), or, for the camera option of a wrapped benchmark (``--cameras``), as video
+(dtype ``video``, LeRobot's encoder). Ground truth the policy must not see (the EnvConfig's ``ground_truth``:
+dataset feature -> env ``info`` key, e.g. γ with cameras on) is stored under its non-``observation`` name.
 
 The dataset is written atomically: into a staging sibling folder ``.<name>.<pid>.<random>.tmp``, finalized,
 given a dataset card (:mod:`lerobot_cnmp.record_card`), then renamed to ``root``. Staging folders left by a
@@ -33,6 +35,7 @@ from lerobot.configs import FeatureType
 from tqdm import tqdm
 
 from lerobot_cnmp.record_card import record_command, write_card
+from lerobot_cnmp.sims.cameras import camera_options
 from lerobot_cnmp.sims.registry import SIMS, SimSpec
 
 IMAGE_WRITER_THREADS = 2  # threads writing the PNG frames of image features
@@ -48,10 +51,17 @@ def _get_spec(sim: str) -> SimSpec:
     return SIMS[sim]
 
 
-def _dataset_features(cfg, spec: SimSpec) -> dict:
-    """LeRobotDataset features from the EnvConfig's features/features_map: float32 vectors (named), and
-    images (``VISUAL`` features of shape (H, W, C), stored as PNG frames: dtype ``image``)."""
+def _dataset_features(cfg, spec: SimSpec, video: bool = False) -> dict:
+    """LeRobotDataset features from the EnvConfig's features/features_map: float32 vectors (named), images
+    (``VISUAL`` features of shape (H, W, C): PNG frames, dtype ``image``, or with ``video`` dtype ``video``),
+    and the config's ``ground_truth`` vectors (named by the sim's ``feature_names`` of their ``info`` key)."""
     features = {}
+    for key, info_key in getattr(cfg, "ground_truth", {}).items():
+        names = spec.feature_names.get(info_key)
+        if not names:
+            raise ValueError(f"ground-truth feature {key!r} (info[{info_key!r}]) needs its entries' names in the "
+                             f"sim's feature_names[{info_key!r}]")
+        features[key] = {"dtype": "float32", "shape": (len(names),), "names": list(names)}
     for key, feat in cfg.features.items():
         if feat.type is FeatureType.VISUAL:
             if len(feat.shape) != 3 or not key.startswith("pixels/"):
@@ -60,7 +70,7 @@ def _dataset_features(cfg, spec: SimSpec) -> dict:
                     "features of shape (height, width, channels)"
                 )
             features[cfg.features_map[key]] = {
-                "dtype": "image",
+                "dtype": "video" if video else "image",
                 "shape": tuple(feat.shape),
                 "names": ["height", "width", "channels"],
             }
@@ -88,7 +98,7 @@ def _task_description(env) -> str:
 def _frame_value(obs: dict, key: str, dtype: str) -> np.ndarray:
     """The value of env-observation feature ``key`` in ``obs``: ``pixels/<name>`` is the uint8 image
     ``obs["pixels"][name]`` (H, W, C), anything else a float32 vector."""
-    if dtype == "image":
+    if dtype in ("image", "video"):
         return np.asarray(obs["pixels"][key.split("/", 1)[1]], dtype=np.uint8)
     return np.asarray(obs[key], dtype=np.float32)
 
@@ -127,6 +137,8 @@ def record_dataset(
     action_noise: str | float | list | None = None,
     max_failed: int = 0,
     demo_length: int | None = None,
+    cameras: list[str] | None = None,
+    camera_size: int | None = None,
 ) -> Path:
     """Record ``n_episodes`` scripted demos of ``sim`` into a LeRobotDataset at ``root``; returns ``root``.
 
@@ -148,6 +160,8 @@ def record_dataset(
             seed; the card lists the dropped seeds. 0: the first failed demo stops the recording.
         demo_length: frames per demo (the sim's ``SimSpec.demo_length`` when None), e.g. for a MetaWorld task
             whose expert needs more than the default 150 steps (at most the env's own episode limit).
+        cameras, camera_size: a wrapped benchmark's cameras to record as video ``observation.images.<name>``
+            (:func:`~lerobot_cnmp.sims.cameras.camera_options`); γ is then stored as ``ground_truth.task_params``.
 
     Raises:
         ValueError: unknown sim, ``n_episodes < 1``.
@@ -172,16 +186,20 @@ def record_dataset(
     if root.exists() and not overwrite:
         raise FileExistsError(f"dataset folder {root} already exists; pass overwrite=True (--overwrite) to replace it")
 
+    camera_kwargs = camera_options(SIMS, sim, cameras, camera_size)
     cfg = spec.env_config_cls(
         **spec.config_kwargs(conditions),
+        **camera_kwargs,
         render_mode=None,
         terminate_on_success=False,
         episode_length=spec.demo_length,
     )
-    features = _dataset_features(cfg, spec)
+    video = bool(getattr(cfg, "cameras", None))  # a wrapped benchmark's cameras: video, as LeRobot records
+    features = _dataset_features(cfg, spec, video=video)
     obs_keys = [k for k in cfg.features if cfg.features_map[k] != "action"]
     obs_dtypes = {k: features[cfg.features_map[k]]["dtype"] for k in obs_keys}
-    has_images = "image" in obs_dtypes.values()
+    has_images = bool({"image", "video"} & set(obs_dtypes.values()))
+    ground_truth = getattr(cfg, "ground_truth", {})  # dataset feature -> env info key (γ with cameras on)
 
     try:  # the per-episode "Map" bars of `datasets` would drown our own progress bar
         from datasets.utils import logging as ds_logging
@@ -206,7 +224,7 @@ def record_dataset(
             fps=cfg.fps,
             features=features,
             root=tmp_parent / "dataset",
-            use_videos=False,
+            use_videos=video,
             # PNG encoding of image frames in background threads (finalize stops them)
             image_writer_threads=IMAGE_WRITER_THREADS if has_images else 0,
         )
@@ -223,6 +241,7 @@ def record_dataset(
             for k in range(spec.demo_length):
                 action = np.asarray(expert.act(k), dtype=np.float32)
                 frame = {cfg.features_map[key]: _frame_value(obs, key, obs_dtypes[key]) for key in obs_keys}
+                frame.update({key: np.asarray(info[i], dtype=np.float32) for key, i in ground_truth.items()})
                 frame["action"] = action
                 frame["task"] = task_str
                 frames.append(frame)
@@ -271,7 +290,7 @@ def record_dataset(
             kinds=kinds,
             command=record_command(sim, _display_path(root), n_episodes, seed, repo_id, conditions,
                              None if noise is None else ",".join(f"{v:g}" for v in noise), max_failed,
-                             spec.demo_length),
+                             spec.demo_length, camera_kwargs.get("cameras"), camera_kwargs.get("camera_size")),
             elapsed_s=elapsed_s,
             action_noise=noise,
             seeds=seeds,
@@ -376,6 +395,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max_failed", type=int, default=0,
                         help="drop up to this many failed demos (e.g. under --action_noise) and record the next seed "
                              "instead; the card lists them (default 0: a failed demo stops the recording)")
+    parser.add_argument("--cameras", nargs="+", default=None, help="record these cameras as video "
+                        "observation.images.<name>; gamma then leaves the observation (kept as ground_truth.task_params)")
+    parser.add_argument("--camera_size", type=int, default=None, help="side of the camera images, pixels (default 128)")
     parser.add_argument("--push_to_hub", action="store_true",
                         help="then push the dataset to the Hub as --repo_id (LeRobotDataset.push_to_hub, with its card)")
     parser.add_argument("--private", action="store_true", help="with --push_to_hub: a private repository")
@@ -406,6 +428,8 @@ def main(argv: list[str] | None = None) -> int:
             action_noise=args.action_noise,
             max_failed=args.max_failed,
             demo_length=args.demo_length,
+            cameras=args.cameras,
+            camera_size=args.camera_size,
         )
     except (FileExistsError, DemoFailedError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -13,8 +13,11 @@ from lerobot_cnmp.sims.registry import SIMS, SimSpec
 
 
 def record_command(sim: str, root: Path, n_episodes: int, seed: int, repo_id: str, conditions: str,
-             action_noise: str | None = None, max_failed: int = 0, demo_length: int | None = None) -> str:
+             action_noise: str | None = None, max_failed: int = 0, demo_length: int | None = None,
+             cameras: list[str] | None = None, camera_size: int | None = None) -> str:
     cmd = f"lerobot-cnmp-record --sim {sim} --root {root} --n_episodes {n_episodes} --seed {seed}"
+    if cameras:
+        cmd += " --cameras " + " ".join(cameras) + (f" --camera_size {camera_size}" if camera_size else "")
     if demo_length is not None and demo_length != SIMS[sim].demo_length:
         cmd += f" --demo_length {demo_length}"
     if action_noise is not None:

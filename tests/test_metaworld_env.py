@@ -68,3 +68,84 @@ def test_record_a_metaworld_task(tmp_path):
     assert ds.meta.total_episodes == 2 and ds.meta.total_frames == 300
     assert set(ds.meta.features) >= {"action", "observation.state", "observation.task_params"}
     assert ds[0]["task"] == "push-v3"
+
+
+# --- cameras: the policy sees the hand state and images; γ is ground truth only -------------------------------
+
+
+def test_cameras_replace_gamma_in_the_observation_and_keep_it_in_info():
+    plain = MetaWorldEnv("push-v3", terminate_on_success=False)
+    obs0, info0 = plain.reset(seed=3)
+    env = MetaWorldEnv("push-v3", terminate_on_success=False, cameras=["corner3", "gripperPOV"], camera_size=48)
+    obs, info = env.reset(seed=3)
+    assert set(obs) == {"agent_pos", "pixels"} and set(obs["pixels"]) == {"corner3", "gripperPOV"}
+    for img in obs["pixels"].values():
+        assert img.shape == (48, 48, 3) and img.dtype == np.uint8 and img.std() > 5  # a scene, not a blank
+    assert env.observation_space.contains(obs)
+    np.testing.assert_array_equal(info["task_params"], obs0["environment_state"])  # γ, not observed
+    np.testing.assert_array_equal(info0["task_params"], obs0["environment_state"])
+    obs2, _, _, _, info2 = env.step(np.zeros(4))
+    np.testing.assert_array_equal(info2["task_params"], info["task_params"])
+    other, _ = env.reset(seed=4)  # another object/goal placement: the camera sees it
+    assert np.abs(other["pixels"]["corner3"].astype(int) - obs["pixels"]["corner3"].astype(int)).sum() > 0
+    env.close()
+    plain.close()
+
+
+@pytest.mark.parametrize("cameras, size, message", [
+    (["corner3", "nope"], 64, "unknown camera"),
+    ("corner3", 64, "list of camera names"),
+    (["corner3", "corner3"], 64, "distinct"),
+    (["corner3"], 16, "at least 32"),
+])
+def test_bad_camera_options_are_clear_errors(cameras, size, message):
+    with pytest.raises(ValueError, match=message):
+        MetaWorldEnv("push-v3", cameras=cameras, camera_size=size)
+
+
+def test_camera_config_declares_images_and_no_gamma():
+    cfg = CNMPMetaWorldEnv(task="push-v3", cameras=["corner3"], camera_size=64)
+    assert "environment_state" not in cfg.features and cfg.features["pixels/corner3"].shape == (64, 64, 3)
+    assert cfg.features_map["pixels/corner3"] == "observation.images.corner3"
+    assert cfg.ground_truth == {"ground_truth.task_params": "task_params"}
+    assert cfg.gym_kwargs["cameras"] == ["corner3"] and cfg.gym_kwargs["camera_size"] == 64
+    plain = CNMPMetaWorldEnv(task="push-v3")
+    assert "environment_state" in plain.features and plain.ground_truth == {}
+    with pytest.raises(ValueError, match="list of camera names"):
+        CNMPMetaWorldEnv(task="push-v3", cameras="corner3")
+
+
+def test_record_cameras_as_video_with_gamma_as_ground_truth(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_cnmp.record import record_dataset
+
+    root = record_dataset("cnmp_metaworld", tmp_path / "cam", n_episodes=2, conditions="push-v3", progress=False,
+                          cameras=["corner3"], camera_size=64)
+    ds = LeRobotDataset("local/cam", root=root)
+    feats = ds.meta.features
+    assert feats["observation.images.corner3"]["dtype"] == "video"
+    assert "observation.task_params" not in feats and "observation.environment_state" not in feats
+    assert feats["ground_truth.task_params"]["names"] == ["obj_x", "obj_y", "obj_z", "goal_x", "goal_y", "goal_z"]
+    item = ds[0]
+    assert tuple(item["observation.images.corner3"].shape) == (3, 64, 64)
+    assert not any(k.startswith("observation.") and "task" in k for k in item)
+    plain = MetaWorldEnv("push-v3")  # the recorded γ is the env's at each episode's seed (seed + i)
+    for ep in (0, 1):
+        _, info = plain.reset(seed=ep)
+        frame = ds[int(ds.meta.episodes["dataset_from_index"][ep])]
+        np.testing.assert_allclose(frame["ground_truth.task_params"].numpy(), info["task_params"], atol=1e-6)
+    plain.close()
+    card = (root / "README.md").read_text()
+    assert "--cameras corner3 --camera_size 64" in card
+
+
+def test_record_camera_errors(tmp_path):
+    from lerobot_cnmp.record import record_dataset
+
+    with pytest.raises(ValueError, match="no camera option"):
+        record_dataset("cnmp_obstacle2d", tmp_path / "a", n_episodes=1, progress=False, cameras=["top"])
+    with pytest.raises(ValueError, match="camera_size is given without cameras"):
+        record_dataset("cnmp_metaworld", tmp_path / "b", n_episodes=1, conditions="push-v3", progress=False,
+                       camera_size=64)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -12,6 +12,7 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
+from lerobot_cnmp.sims.cameras import GROUND_TRUTH_TASK_PARAMS, camera_features, check_cameras
 from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
 from lerobot_cnmp.sims.metaworld.task import CONTROL_FPS, MAX_PATH_LENGTH, check_task
 
@@ -32,6 +33,11 @@ class CNMPMetaWorldEnv(CNMPSimConfig):
         episode_length: steps before truncation (at most MetaWorld's 500).
         render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig` (default no rendering:
             MetaWorld's renderer is slow on CPU).
+        cameras: MetaWorld camera names (``corner``, ``corner2``, ``corner3``, ``topview``, ``behindGripper``,
+            ``gripperPOV``) observed as ``observation.images.<name>``. Non-empty: γ is NOT given to the policy
+            (no ``environment_state``); the recorder stores it as ``ground_truth.task_params`` for reports.
+        camera_size: side of each camera image, pixels (shadows, reflections and skybox off: ~20-30 ms a
+            128 x 128 frame on CPU).
     """
 
     task: str | None = "reach-v3"
@@ -39,6 +45,8 @@ class CNMPMetaWorldEnv(CNMPSimConfig):
     episode_length: int = 150
     render_mode: str | None = None
     render_size: int = 128
+    cameras: list[str] = field(default_factory=list)
+    camera_size: int = 128
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(4,)),
@@ -56,6 +64,18 @@ class CNMPMetaWorldEnv(CNMPSimConfig):
             raise ValueError(f"episode_length must be in [1, {MAX_PATH_LENGTH}] (MetaWorld's path length), "
                              f"got {self.episode_length}")
         self._check_common()
+        self.cameras = check_cameras(self.cameras, self.camera_size)
+        if self.cameras:  # the policy sees the hand state and the images; γ is ground truth for reports only
+            self.features.pop("environment_state", None)
+            self.features_map.pop("environment_state", None)
+            feats, names = camera_features(self.cameras, self.camera_size)
+            self.features.update(feats)
+            self.features_map.update(names)
+
+    @property
+    def ground_truth(self) -> dict[str, str]:
+        """Dataset feature -> the env ``info`` key the recorder stores it from (none when γ is observed)."""
+        return {GROUND_TRUTH_TASK_PARAMS: "task_params"} if self.cameras else {}
 
     @property
     def gym_id(self) -> str:
@@ -63,9 +83,11 @@ class CNMPMetaWorldEnv(CNMPSimConfig):
 
     @property
     def gym_kwargs(self) -> dict:
-        return {"task": self.task, **self._common_gym_kwargs()}
+        return {"task": self.task, "cameras": list(self.cameras), "camera_size": self.camera_size,
+                **self._common_gym_kwargs()}
 
     def get_env_processors(self):
-        """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``."""
+        """γ arrives as ``observation.environment_state``; the policy reads it as ``observation.task_params``
+        (with cameras there is no γ to rename)."""
         rename = RenameObservationsProcessorStep(rename_map={OBS_ENV_STATE: TASK_PARAMS})
         return PolicyProcessorPipeline(steps=[rename]), PolicyProcessorPipeline(steps=[])

@@ -8,7 +8,11 @@ env class, its ``info["success"]``); this wrapper only
 * exposes ``agent_pos`` = the hand position (x, y, z, m) and the gripper opening (MetaWorld's observation
   entries 0-3), and ``environment_state`` = γ = the first frame's main-object position (3) and goal position (3)
   (entries 4-6 and 36-38), constant within an episode,
-* reports ``info["is_success"]`` = MetaWorld's ``info["success"]``, with optional termination on success.
+* reports ``info["is_success"]`` = MetaWorld's ``info["success"]``, with optional termination on success,
+* with ``cameras`` (names of the MetaWorld model's cameras, e.g. ``corner3``, ``gripperPOV``), observes each as
+  ``pixels[<name>]`` (uint8, ``camera_size`` square, :class:`~lerobot_cnmp.sims.cameras.FastRenderer`) and
+  drops ``environment_state``: the policy sees the hand state and the images only; γ stays in
+  ``info["task_params"]`` (every reset and step, cameras or not) for the recorder's ground truth.
 
 Actions are MetaWorld's: (dx, dy, dz, gripper) in [-1, 1]. Its scripted experts (``metaworld.policies``)
 drive the recorder through :class:`lerobot_cnmp.sims.metaworld.expert.MetaWorldExpert`. Nothing is rendered
@@ -25,6 +29,7 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
+from lerobot_cnmp.sims.cameras import FastRenderer, check_cameras  # noqa: E402
 from lerobot_cnmp.sims.metaworld.task import (  # noqa: E402
     CONTROL_FPS,
     DEFAULT_TASK,
@@ -44,12 +49,15 @@ class MetaWorldEnv(gym.Env):
         render_size: side of the rendered square image, pixels.
         terminate_on_success: end the episode as soon as MetaWorld reports success.
         max_episode_steps: if given, the env truncates itself at this many steps (at most MetaWorld's 500).
+        cameras: MetaWorld camera names observed as ``pixels[<name>]``; non-empty drops ``environment_state``.
+        camera_size: side of each camera image, pixels.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
 
     def __init__(self, task: str = DEFAULT_TASK, render_mode: str | None = None, render_size: int = 128,
-                 terminate_on_success: bool = True, max_episode_steps: int | None = None):
+                 terminate_on_success: bool = True, max_episode_steps: int | None = None,
+                 cameras: list[str] | tuple[str, ...] = (), camera_size: int = 128):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"unknown render_mode {render_mode!r}; choose 'rgb_array' or None")
         metaworld = import_metaworld()
@@ -65,10 +73,17 @@ class MetaWorldEnv(gym.Env):
         self._max_episode_steps = int(max_episode_steps or self._mw.max_path_length)
         self.render_mode = render_mode
         self.terminate_on_success = bool(terminate_on_success)
-        self.observation_space = spaces.Dict({
-            "agent_pos": spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float32),
-            "environment_state": spaces.Box(-np.inf, np.inf, shape=(GAMMA_DIM,), dtype=np.float32),
-        })
+        model = self._mw.model
+        self.cameras = check_cameras(cameras, camera_size, [model.camera(i).name for i in range(model.ncam)])
+        self.camera_size = int(camera_size)
+        self._cameras = FastRenderer(model, self.camera_size) if self.cameras else None
+        space = {"agent_pos": spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float32)}
+        if self.cameras:
+            space["pixels"] = spaces.Dict({c: spaces.Box(0, 255, (self.camera_size, self.camera_size, 3), np.uint8)
+                                           for c in self.cameras})
+        else:
+            space["environment_state"] = spaces.Box(-np.inf, np.inf, shape=(GAMMA_DIM,), dtype=np.float32)
+        self.observation_space = spaces.Dict(space)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         self.raw_obs: np.ndarray | None = None  # MetaWorld's own 39-dim observation (what its experts read)
         self.gamma = np.zeros(GAMMA_DIM, dtype=np.float32)
@@ -84,7 +99,12 @@ class MetaWorldEnv(gym.Env):
         return self.task_name
 
     def _obs(self) -> dict:
-        return {"agent_pos": self.raw_obs[:STATE_DIM].astype(np.float32), "environment_state": self.gamma.copy()}
+        obs = {"agent_pos": self.raw_obs[:STATE_DIM].astype(np.float32)}
+        if self.cameras:
+            obs["pixels"] = {c: self._cameras(self._mw.data, c) for c in self.cameras}
+        else:
+            obs["environment_state"] = self.gamma.copy()
+        return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -96,7 +116,7 @@ class MetaWorldEnv(gym.Env):
         self.raw_obs, _ = self._mw.reset()
         self.gamma = np.concatenate([self.raw_obs[4:7], self.raw_obs[36:39]]).astype(np.float32)
         self._step = 0
-        return self._obs(), {"is_success": False}
+        return self._obs(), {"is_success": False, "task_params": self.gamma.copy()}
 
     def step(self, action):
         if self.raw_obs is None:
@@ -105,7 +125,7 @@ class MetaWorldEnv(gym.Env):
         self.raw_obs, reward, _, mw_truncated, info = self._mw.step(action)
         self._step += 1
         success = bool(info.get("success", False))
-        info = {**info, "is_success": success}
+        info = {**info, "is_success": success, "task_params": self.gamma.copy()}
         terminated = success and self.terminate_on_success
         truncated = bool((mw_truncated or self._step >= self._max_episode_steps) and not terminated)
         return self._obs(), float(reward), terminated, truncated, info
@@ -114,4 +134,6 @@ class MetaWorldEnv(gym.Env):
         return self._mw.render() if self.render_mode == "rgb_array" else None
 
     def close(self):
+        if self._cameras is not None:
+            self._cameras.close()
         self._mw.close()
