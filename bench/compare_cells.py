@@ -77,6 +77,21 @@ def metaworld_cell(task: str, name: str) -> dict:
             "env_state_copy": {"act", "diffusion"}, "promp": "task_params"}
 
 
+CAMERAS = ["corner3", "behindGripper"]  # the camera cells' views (128 x 128): the table with the goal, the gripper's
+
+
+def metaworld_camera_cell(task: str, name: str) -> dict:
+    """A MetaWorld task seen by cameras (issue: no privileged positions): its dataset recorded with ``--cameras``
+    (γ only as ground truth), every method reading ``observation.state`` and the images; no ProMP (no image path)."""
+    return {"dataset": f"datasets/cnmp_metaworld_{name}_cam",
+            "env": ["--env.type=cnmp_metaworld", f"--env.task={task}", f"--env.cameras=[{','.join(CAMERAS)}]"],
+            "configs": {m: f"configs/{m}{'' if m == 'cnmp' else '_cpu'}_metaworld_{name}_cam.json"
+                        for m in ("cnmp", "act", "diffusion")},
+            "record": (f"lerobot-cnmp-record --sim cnmp_metaworld --conditions {task} --root datasets/cnmp_metaworld_"
+                       f"{name}_cam --n_episodes 50 --max_failed 30 --cameras {' '.join(CAMERAS)}"),
+            "no_cells": {"promp": "the contextual ProMP conditions on γ, which the camera cells do not give"}}
+
+
 TASKS = {
     "cnmp_obstacle2d": {
         "dataset": "datasets/cnmp_obstacle2d",
@@ -87,6 +102,8 @@ TASKS = {
     },
     # MetaWorld: one entry per task, made by the same rule (metaworld_cell); configs identical but for the dataset
     **{f"cnmp_metaworld_{name}": metaworld_cell(task, name) for task, name in METAWORLD_TASKS.items()},
+    **{f"cnmp_metaworld_{name}_cam": metaworld_camera_cell(task, name)
+       for task, name in (("push-v3", "push"), ("pick-place-v3", "pickplace"))},
     "cnmp_so101": {  # the third-party SO-101 pick and place (extra so101); γ is its own environment_state
         "dataset": "datasets/cnmp_so101",
         "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],

@@ -316,7 +316,11 @@ def run_seed(task: str, method: str, n: int, seed: int, *, out: Path, schedule_f
                         "to condition on")
     if method in TASKS[task].get("no_cells", {}):
         raise CellError(f"{method} has no cell on {task}: {TASKS[task]['no_cells'][method]}")
-    n_total = json.loads((REPO / TASKS[task]["dataset"] / "meta" / "info.json").read_text())["total_episodes"]
+    info = REPO / TASKS[task]["dataset"] / "meta" / "info.json"
+    if not info.is_file():
+        how = TASKS[task].get("record")
+        raise CellError(f"no dataset at {info.parent.parent}" + (f"; record it with: {how}" if how else ""))
+    n_total = json.loads(info.read_text())["total_episodes"]
     if n > n_total:
         raise CellError(f"{task} has {n_total} demos, {n} asked")
     path = record_path(out, task, method, n, seed)

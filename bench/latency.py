@@ -13,6 +13,14 @@ Figures on CPU with 1 torch thread, same policy and observation stream, p50 over
 - ``chunk_50_p50_ms``: preprocessor -> ``CNMPPolicy.predict_action_chunk`` of 50 steps with σ
   (``return_std=True``), what LeRobot's RTC engine and the async server call.
 Bars (issue 15): select_action with processors p50 <= 0.5 ms, a 50-step chunk with σ <= 1 ms (``bars``).
+
+    python -m bench.latency --camera 128
+
+The CNMP that sees (issue 37): a policy with one ``--camera`` x ``--camera`` RGB image feature and the conv encoder
+of ``configs/cnmp_metaworld_push_cam.json`` (MetaWorld's 4-dim hand state and action), untrained. The encoder
+runs once per episode, on its first frame (as in training); ``select_action_p50_ms`` is the p50 over episodes of
+``--episode_steps`` steps, each episode's first step included (``first_step_p50_ms``: that step alone, the encoder's
+cost). Bar: select_action p50 <= 2 ms with one 128 x 128 camera.
 The calls run in ``--rounds`` interleaved rounds; the spread of the round p50s shows how much the machine
 itself moved during the run. Latency does not depend on the weights, so the policy is built from the
 dataset without training.
@@ -58,8 +66,12 @@ def main() -> dict:
     p.add_argument("--calls", type=int, default=3000)
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--dataset", default=str(REPO / "datasets" / "cnmp_obstacle2d"))
+    p.add_argument("--camera", type=int, default=None, help="side of one camera image: the image CNMP's latency")
+    p.add_argument("--episode_steps", type=int, default=150, help="with --camera: steps per episode")
     args = p.parse_args()
     torch.set_num_threads(1)
+    if args.camera:
+        return camera_latency(args.camera, args.calls, args.episode_steps)
 
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy
@@ -147,6 +159,51 @@ def main() -> dict:
     print(f"{'figure':<26}{'p50 (ms)':>10}   rounds' p50s")
     for k, label in labels.items():
         print(f"{label:<26}{t[k][0]:>10.4f}   {' '.join(f'{v:.3f}' for v in t[k][1])}")
+    print(json.dumps(res))
+    return res
+
+
+def camera_latency(size: int, calls: int, episode_steps: int) -> dict:
+    """select_action of an image CNMP (one size x size camera): the first step of an episode encodes the image."""
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+
+    from lerobot_cnmp.policy.configuration_cnmp import CNMPConfig
+    from lerobot_cnmp.policy.image_config import ImageEncoderConfig
+    from lerobot_cnmp.policy.modeling_cnmp import CNMPPolicy
+    from lerobot_cnmp.policy.processor_cnmp import make_cnmp_pre_post_processors
+
+    raw = json.loads((REPO / "configs" / "cnmp_metaworld_push_cam.json").read_text())["policy"]
+    image = f"{OBS_IMAGES}.camera"
+    cfg = CNMPConfig(device="cpu", use_images=True, image_encoder=ImageEncoderConfig(**raw["image_encoder"]),
+                     phase_frequencies=raw["phase_frequencies"], demo_duration_s=3.0, dataset_fps=50.0)
+    cfg.input_features = {OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(4,)),
+                          image: PolicyFeature(type=FeatureType.VISUAL, shape=(3, size, size))}
+    cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
+    policy = CNMPPolicy(cfg).eval()
+    policy.normalizer.set((np.zeros(8, np.float32), np.ones(8, np.float32)), None)
+    pre, post = make_cnmp_pre_post_processors(cfg)
+    obs = {OBS_STATE: torch.zeros(1, 4), image: torch.rand(1, 3, size, size)}
+    steps, firsts = [], []
+    n_episodes = max(1, calls // episode_steps)
+    with torch.inference_mode():
+        for _ in range(n_episodes):
+            policy.reset()
+            for k in range(episode_steps):
+                t0 = time.perf_counter()
+                post(policy.select_action(pre(dict(obs))))
+                ms = (time.perf_counter() - t0) * 1e3
+                steps.append(ms)
+                if k == 0:
+                    firsts.append(ms)
+    res = {"camera": f"1 x {size} x {size} RGB", "image_encoder": raw["image_encoder"],
+           "select_action_p50_ms": round(float(np.median(steps)), 4),
+           "first_step_p50_ms": round(float(np.median(firsts)), 4),
+           "mean_ms_per_step": round(float(np.mean(steps)), 4),
+           "bars": {"select_action_p50_ms <= 2": bool(np.median(steps) <= 2.0)},
+           "encoder": "once per episode, on its first step's image (the first frame, as in training)",
+           "episodes": n_episodes, "episode_steps": episode_steps, "torch_threads": torch.get_num_threads(),
+           "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread(s), CPU"}
     print(json.dumps(res))
     return res
 

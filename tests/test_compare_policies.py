@@ -3,6 +3,7 @@ finished seeds, failures recorded as errors (exit 1), and the report's best / ti
 computed from fake lerobot-train logs and fake lerobot-eval files."""
 
 import json
+from unittest import mock
 from pathlib import Path
 
 import pytest
@@ -352,3 +353,25 @@ def test_methods_without_cells_on_a_task_are_skipped_with_the_reason(tmp_path, m
     assert "validate_features" in capsys.readouterr().out
     with pytest.raises(cells.CellError, match="act has no cell on cnmp_weights"):
         run.run_seed("cnmp_weights", "act", 10, 0, out=tmp_path, schedule_for=None)
+
+
+def test_camera_cells_are_one_rule_and_see_no_gamma(tmp_path):
+    """The camera cells: pick-place's configs are push's with only the dataset and job name changed; every env
+    renders the same cameras; no ProMP cell (it conditions on γ); a missing dataset names its record command."""
+    same = ("dataset", "job_name")
+    push, pick = cells.TASKS["cnmp_metaworld_push_cam"], cells.TASKS["cnmp_metaworld_pickplace_cam"]
+    for method in ("cnmp", "act", "diffusion"):
+        a, b = (json.loads((cells.REPO / t["configs"][method]).read_text()) for t in (push, pick))
+        assert {k: v for k, v in a.items() if k not in same} == {k: v for k, v in b.items() if k not in same}
+        assert b["dataset"]["root"] == pick["dataset"]
+    cnmp = json.loads((cells.REPO / push["configs"]["cnmp"]).read_text())["policy"]
+    assert cnmp["use_images"] is True and "task_features" not in cnmp
+    for t in (push, pick):
+        assert f"--env.cameras=[{','.join(cells.CAMERAS)}]" in t["env"] and "promp" in t["no_cells"]
+        assert "--cameras " + " ".join(cells.CAMERAS) in t["record"]
+    with pytest.raises(cells.CellError, match="ProMP is not set up"):
+        run.run_seed("cnmp_metaworld_push_cam", "promp", 5, 0, out=tmp_path, schedule_for=None)
+    missing = {**push, "dataset": "datasets/absent_cam"}
+    with mock.patch.dict(cells.TASKS, {"cnmp_metaworld_push_cam": missing}), \
+            pytest.raises(cells.CellError, match="record it with: lerobot-cnmp-record"):
+        run.run_seed("cnmp_metaworld_push_cam", "cnmp", 5, 0, out=tmp_path, schedule_for=None)

@@ -711,3 +711,62 @@ def test_numpy_executor_equals_the_torch_model_with_the_linear_task_term(freqs):
 def test_linear_task_term_needs_gamma():
     with pytest.raises(ValueError, match="needs task parameters"):
         CNMP(sm_dim=2, task_dim=0, linear_task_term=True)
+
+
+# --- the image encoder's spatial-softmax head and random-shift augmentation ------------------------------------
+
+
+def test_keypoint_encoder_finds_where_a_bright_spot_is():
+    from lerobot_cnmp.model.cnmp import ConvEncoder
+
+    enc = ConvEncoder((3, 32, 32), channels=(1,), embed_dim=2, keypoints=True)  # one conv, not pooled: a 32 x 32 map
+    with torch.no_grad():
+        enc.conv[0].weight.zero_()
+        enc.conv[0].weight[0, 0, 1, 1] = 60.0  # the channel is the red pixel, sharp in the softmax
+        enc.conv[0].bias.zero_()
+        enc.project.weight.copy_(torch.eye(2))
+        enc.project.bias.zero_()
+    images = torch.zeros(2, 3, 32, 32)
+    images[0, 0, 4, 28] = 1.0  # top right
+    images[1, 0, 30, 2] = 1.0  # bottom left
+    xy = enc(images)
+    grid = torch.linspace(-1, 1, 32)
+    torch.testing.assert_close(xy, torch.stack([grid[[28, 4]], grid[[2, 30]]]), atol=1e-3, rtol=0)
+    flat = ConvEncoder((3, 32, 32), channels=(4, 4), embed_dim=5)  # the paper's head: pooled, flattened
+    assert flat(images).shape == (2, 5) and isinstance(flat.conv[-1], torch.nn.MaxPool2d)
+
+
+def test_random_shift_crops_the_padded_image_back_to_size():
+    from lerobot_cnmp.model.cnmp import random_shift
+
+    images = torch.arange(2 * 3 * 8 * 8, dtype=torch.float32).reshape(2, 3, 8, 8)
+    assert random_shift(images, 0) is images
+    shifted = random_shift(images, 2, torch.Generator().manual_seed(0))
+    assert shifted.shape == images.shape
+    padded = torch.nn.functional.pad(images, (2, 2, 2, 2), mode="replicate")
+    for i in range(2):  # each is the padded image's 8 x 8 window at some offset
+        windows = [padded[i, :, y:y + 8, x:x + 8] for y in range(5) for x in range(5)]
+        assert any(torch.equal(shifted[i], w) for w in windows)
+    draws = {tuple(random_shift(images, 2, torch.Generator().manual_seed(s))[0, 0, 0, :2].tolist()) for s in range(20)}
+    assert len(draws) > 1  # the offset is drawn
+
+
+def test_image_encoder_shift_must_be_a_count():
+    from lerobot_cnmp.policy.image_config import ImageEncoderConfig
+
+    assert ImageEncoderConfig(shift=4).shift == 4
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="image_encoder.shift"):
+            ImageEncoderConfig(shift=bad)
+
+
+def test_centered_encoder_subtracts_the_saved_mean_image(tmp_path):
+    from lerobot_cnmp.model.cnmp import ConvEncoder
+
+    torch.manual_seed(0)
+    plain = ConvEncoder((3, 16, 16), (4, 4), 3, keypoints=True)
+    centered = ConvEncoder((3, 16, 16), (4, 4), 3, keypoints=True, center=True)
+    centered.load_state_dict({**plain.state_dict(), "mean_image": torch.rand(3, 16, 16)})
+    images = torch.rand(2, 3, 16, 16)
+    torch.testing.assert_close(centered(images), plain(images - centered.mean_image))
+    assert "mean_image" in centered.state_dict() and "mean_image" not in plain.state_dict()

@@ -639,3 +639,48 @@ def test_mixture_policy_follows_the_committed_expert_and_loads_bit_identically(m
     (ckpt / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="do not fit"):
         CNMPPolicy.from_pretrained(ckpt)
+
+
+def test_bad_camera_input_is_a_clear_error_naming_the_feature():
+    """A camera at another resolution, a grayscale frame where color was trained, channels last: each a
+    ValueError naming the image feature and the trained shape (a missing camera: KeyError, tested above)."""
+    cfg = image_config()
+    cfg.input_features[IMG] = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
+    policy = CNMPPolicy(cfg)
+    from lerobot_cnmp.data.bank import EpisodeBank
+
+    policy.set_bank(EpisodeBank.from_arrays([np.random.randn(20, 2).astype(np.float32) for _ in range(3)]), None)
+    policy.eval()
+    for img, extra in ((torch.zeros(1, 3, 32, 32), ""), (torch.zeros(1, 1, 16, 16), "grayscale"),
+                       (torch.zeros(1, 16, 16, 3), "channels last")):
+        policy.reset()
+        with pytest.raises(ValueError, match=rf"{IMG}.*\[B, 3, 16, 16\]" + (f".*{extra}" if extra else "")):
+            policy.select_action({OBS_STATE: torch.zeros(1, 2), IMG: img})
+    policy.reset()
+    assert policy.select_action({OBS_STATE: torch.zeros(1, 2), IMG: torch.zeros(1, 3, 16, 16)}).shape == (1, 2)
+
+
+def test_keypoint_centered_encoder_trains_and_saves_its_mean_image(tmp_path):
+    from lerobot_cnmp.data.bank import EpisodeBank
+
+    torch.manual_seed(0)
+    from lerobot_cnmp.policy.image_config import ImageEncoderConfig
+
+    policy = CNMPPolicy(image_config(image_encoder=ImageEncoderConfig(keypoints=True, shift=2, downsample=2, center=True,
+                                                                      final_point_weight=1.0)))
+    enc = policy.image_encoders[IMG.replace(".", "_")]
+    assert enc.keypoints and isinstance(enc.conv[0], torch.nn.AvgPool2d) and enc.mean_image.shape == (1, 16, 16)
+    policy.set_bank(EpisodeBank.from_arrays([np.random.randn(20, 2).astype(np.float32) for _ in range(3)]), None)
+    policy._first_frames = _Frames()
+    with torch.no_grad():
+        enc.mean_image.copy_(policy._first_frames.images.mean(0))
+    loss, info = policy.forward({"episode_index": torch.tensor([0, 1, 2])})
+    loss.backward()
+    assert torch.isfinite(loss) and enc.conv[1].weight.grad.abs().sum() > 0
+    assert info["final_point_mse"] > 0 and policy.final_point_head.weight.grad.abs().sum() > 0
+    last = policy.bank.last_points_of(torch.tensor([1]))
+    torch.testing.assert_close(last[0], policy.bank.values[policy.bank.starts[1] + policy.bank.lengths[1] - 1])
+    policy.save_pretrained(tmp_path)
+    back = CNMPPolicy.from_pretrained(tmp_path)
+    torch.testing.assert_close(back.image_encoders[IMG.replace(".", "_")].mean_image, enc.mean_image)
+    assert back.config.image_encoder.center and back.config.image_encoder.downsample == 2

@@ -166,6 +166,11 @@ class EpisodeBank:
         """γ of each named episode (its first frame), [B, G] raw units; None without task parameters."""
         return None if self.task_params is None else self.task_params[self.rows(episode_index)]
 
+    def last_points_of(self, episode_index: Tensor) -> Tensor:
+        """The SM point at each named episode's last frame, [B, D] raw units."""
+        rows = self.rows(episode_index)
+        return self.values[self.starts[rows] + self.lengths[rows] - 1]
+
     def sample_episodes(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``n`` dataset episode ids, each drawn with probability ∝ its length (as a uniform frame's episode)."""
         frames = torch.randint(int(self.lengths.sum()), (n,), generator=generator)

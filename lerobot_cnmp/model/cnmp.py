@@ -72,20 +72,54 @@ def run_mlp(layers: nn.Sequential, x: Tensor, start: int = 0) -> Tensor:
 
 class ConvEncoder(nn.Module):
     """Image -> embedding (paper Sec. IV-B): per width in ``channels`` a 3x3 conv, ReLU and 2x2 max-pool
-    (the paper: 8, 16, 32, 64), then a linear layer to ``embed_dim``."""
+    (the paper: 8, 16, 32, 64), then a linear layer to ``embed_dim`` from the flattened map, or with
+    ``keypoints`` from the spatial softmax's expected (x, y) per channel of the last map (not pooled). With
+    ``downsample`` > 1 the image is first average-pooled by that factor; with ``center`` the buffer
+    ``mean_image`` (set from the training demos' first frames, saved with the weights) is subtracted first."""
 
-    def __init__(self, in_shape: tuple[int, int, int], channels: tuple[int, ...], embed_dim: int):
+    def __init__(self, in_shape: tuple[int, int, int], channels: tuple[int, ...], embed_dim: int,
+                 keypoints: bool = False, downsample: int = 1, center: bool = False):
         super().__init__()
         c, h, w = in_shape
+        self.register_buffer("mean_image", torch.zeros(in_shape) if center else None)
         layers: list[nn.Module] = []
-        for width in channels:
-            layers += [nn.Conv2d(c, width, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)]
-            c, h, w = width, h // 2, w // 2
+        if downsample > 1:
+            layers.append(nn.AvgPool2d(downsample))
+            h, w = h // downsample, w // downsample
+        for i, width in enumerate(channels):
+            layers += [nn.Conv2d(c, width, 3, padding=1), nn.ReLU()]
+            c = width
+            if not (keypoints and i == len(channels) - 1):
+                layers.append(nn.MaxPool2d(2))
+                h, w = h // 2, w // 2
         self.conv = nn.Sequential(*layers)
-        self.project = nn.Linear(c * h * w, embed_dim)
+        self.keypoints = keypoints
+        if keypoints:  # pixel-centre coordinates in [-1, 1] of the last map
+            self.register_buffer("grid_x", torch.linspace(-1, 1, w).repeat(h), persistent=False)
+            self.register_buffer("grid_y", torch.linspace(-1, 1, h).repeat_interleave(w), persistent=False)
+        self.project = nn.Linear(2 * c if keypoints else c * h * w, embed_dim)
 
-    def forward(self, images: Tensor) -> Tensor:
-        return self.project(self.conv(images).flatten(1))
+    def forward(self, images: Tensor, shift: int = 0, generator: torch.Generator | None = None) -> Tensor:
+        """[B, E] from images [B, C, H, W] in [0, 1]; ``shift`` > 0: randomly shifted first (training)."""
+        if self.mean_image is not None:
+            images = images - self.mean_image
+        maps = self.conv(random_shift(images, shift, generator))
+        if not self.keypoints:
+            return self.project(maps.flatten(1))
+        attention = maps.flatten(2).softmax(dim=-1)  # [B, C, h w]: where each channel fires
+        xy = torch.cat([attention @ self.grid_x, attention @ self.grid_y], dim=-1)  # [B, 2 C]
+        return self.project(xy)
+
+
+def random_shift(images: Tensor, pad: int, generator: torch.Generator | None = None) -> Tensor:
+    """Each image of [B, C, H, W] padded by ``pad`` pixels (edges repeated) and cropped back to H x W at a
+    random offset (DrQ's augmentation)."""
+    if pad <= 0:
+        return images
+    b, _, h, w = images.shape
+    padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
+    offsets = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator)
+    return torch.stack([padded[i, :, y:y + h, x:x + w] for i, (y, x) in enumerate(offsets.tolist())])
 
 
 def fit_figures(mean: Tensor, std: Tensor, targets: Targets) -> dict[str, float]:

@@ -3,14 +3,14 @@
 Defaults follow the paper (Seker et al., RSS 2019, Sec. III and IV-A) where it gives a value; where the
 original trains with batch 1 and one query per step, we batch episodes and queries and raise the learning rate
 accordingly. Settings of one concern form a section, ``--policy.<section>.<field>``: ``sampling``
-(:class:`SamplingConfig`), ``mixture`` (:class:`MixtureConfig`), ``execution`` (:class:`ExecutionConfig`).
+(:class:`SamplingConfig`), ``mixture`` (:class:`MixtureConfig`), ``execution`` (:class:`ExecutionConfig`),
+``image_encoder`` (:class:`~lerobot_cnmp.policy.image_config.ImageEncoderConfig`).
 Configs of older layouts load through :func:`lerobot_cnmp.policy.legacy.upgrade_config_dict`.
 """
 
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
@@ -21,6 +21,7 @@ from lerobot_cnmp.data import sm_spec
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS, SMSpec  # noqa: F401  (TASK_PARAMS: re-exported)
 from lerobot_cnmp.execution.conditions import slot_size
 from lerobot_cnmp.execution.config import ExecutionConfig
+from lerobot_cnmp.policy.image_config import ImageEncoderConfig, check as _check, is_count as _is_count
 from lerobot_cnmp.policy.legacy import decode_with_upgrade  # noqa: F401  (installs the legacy upgrade on decoding)
 
 
@@ -35,16 +36,6 @@ class CNMPAdamConfig(AdamConfig):
 def identity_normalization() -> dict[str, NormalizationMode]:
     """LeRobot's normalizer steps pass every feature type through unchanged."""
     return {kind: NormalizationMode.IDENTITY for kind in ("VISUAL", "STATE", "ENV", "ACTION")}
-
-
-def _check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError(message)
-
-
-def _is_count(x, low: int = 0) -> bool:
-    """An integer >= low (bools, NaN and inf are not)."""
-    return not isinstance(x, bool) and isinstance(x, numbers.Real) and math.isfinite(x) and x == int(x) and x >= low
 
 
 @dataclass
@@ -205,6 +196,7 @@ class CNMPConfig(PreTrainedConfig):
         image_channels: Widths of the conv encoder's layers (3x3 conv + ReLU + 2x2 max-pool each; the paper:
             8, 16, 32, 64). Images need sides of at least 2^len(image_channels) pixels.
         image_embed_dim: Size of each image's embedding.
+        image_encoder: Its spatial-softmax head and training augmentation (:class:`ImageEncoderConfig`).
         demo_duration_s: Duration of a demonstration (median over the training episodes, set when training
             from scratch starts). Execution runs the movement in this time.
         dataset_fps: The training dataset's frame rate (set when training starts).
@@ -253,6 +245,7 @@ class CNMPConfig(PreTrainedConfig):
     use_images: bool = False
     image_channels: tuple[int, ...] = (8, 16, 32, 64)
     image_embed_dim: int = 32
+    image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
 
     # Execution (paper Sec. III): timing of the demonstrations, conditions, the executor's settings.
     demo_duration_s: float | None = None
@@ -272,7 +265,8 @@ class CNMPConfig(PreTrainedConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        for name, kind in (("mixture", MixtureConfig), ("sampling", SamplingConfig), ("execution", ExecutionConfig)):
+        for name, kind in (("mixture", MixtureConfig), ("sampling", SamplingConfig), ("execution", ExecutionConfig),
+                           ("image_encoder", ImageEncoderConfig)):
             if isinstance(getattr(self, name), dict):  # CNMPConfig(mixture={...}) from Python
                 setattr(self, name, kind(**getattr(self, name)))
         for name in ("encoder_layers", "decoder_layers", "image_channels"):
@@ -397,12 +391,13 @@ class CNMPConfig(PreTrainedConfig):
             )
         for key in self.image_keys:
             shape = tuple(self.input_features[key].shape)
-            side = 2 ** len(self.image_channels)
+            pools = len(self.image_channels) - int(self.image_encoder.keypoints)
+            side = self.image_encoder.downsample * 2 ** pools
             if len(shape) != 3 or min(shape[1:]) < side:
                 raise ValueError(
                     f"image feature {key!r} has shape {shape}; the conv encoder needs [channels, height, width] "
-                    f"with sides of at least {side} pixels ({len(self.image_channels)} 2x2 poolings)"
-                )
+                    f"with sides of at least {side} pixels ({pools} 2x2 poolings after a downsample by "
+                    f"{self.image_encoder.downsample})")
 
     # ---- Derived sizes -------------------------------------------------------------------------------
 

@@ -16,9 +16,21 @@ def join(parts: list[Tensor]) -> Tensor | None:
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
 
-def embed(image_encoders: nn.ModuleDict, key: str, images: Tensor) -> Tensor:
-    """The embedding of image feature ``key``'s images [B, C, H, W] by its conv encoder, [B, E]."""
-    return image_encoders[key.replace(".", "_")](images)
+def embed(image_encoders: nn.ModuleDict, key: str, images: Tensor, **kwargs) -> Tensor:
+    """The embedding of image feature ``key``'s images [B, C, H, W] by its conv encoder, [B, E] (``kwargs``:
+    the encoder's training augmentation)."""
+    return image_encoders[key.replace(".", "_")](images, **kwargs)
+
+
+def check_image(key: str, img: Tensor, expected: tuple[int, ...]) -> None:
+    """A clear error when image feature ``key`` is not [B, C, H, W] of the trained ``expected`` (C, H, W):
+    another resolution, a grayscale frame, channels last."""
+    got = tuple(img.shape[1:])
+    if img.ndim != 4 or got != expected:
+        kind = (" (a grayscale frame: the CNMP was trained on color)" if got[:1] == (1,) and expected[0] == 3
+                else " (channels last? LeRobot's image features are [C, H, W])" if got[-1:] == expected[:1] else "")
+        raise ValueError(f"image feature {key!r} is {list(img.shape)}, the CNMP was trained on [B, "
+                         f"{', '.join(map(str, expected))}]{kind}: give the camera at the trained resolution")
 
 
 def observed_task_params(spec, batch: dict[str, Tensor]) -> Tensor | None:
@@ -48,6 +60,7 @@ def observed_episode_inputs(config, normalizer, image_encoders: nn.ModuleDict, b
             raise KeyError(f"this CNMP is conditioned on the image {key!r}; the observation has {sorted(batch)}")
         img = batch[key]
         img = img[:, 0] if img.ndim == 5 else img
+        check_image(key, img, tuple(config.input_features[key].shape))
         check_finite(key, img)
         parts.append(embed(image_encoders, key, img))
     return join(parts)

@@ -81,10 +81,15 @@ class CNMPPolicy(PreTrainedPolicy):
         # One conv encoder per image feature; its embedding joins γ as the episode-level input of E and Q.
         self.image_encoders = nn.ModuleDict({
             key.replace(".", "_"): ConvEncoder(tuple(config.input_features[key].shape), config.image_channels,
-                                               config.image_embed_dim)
+                                               config.image_embed_dim, keypoints=config.image_encoder.keypoints,
+                                               downsample=config.image_encoder.downsample,
+                                               center=config.image_encoder.center)
             for key in config.image_keys
         })
         self.model = _network_from_config(config)
+        # the auxiliary head of image_encoder.final_point_weight: images' embedding -> the episode's last SM point
+        self.final_point_head = (nn.Linear(len(config.image_keys) * config.image_embed_dim, config.sm_dim)
+                                 if config.image_keys and config.image_encoder.final_point_weight > 0 else None)
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         # the mask of execution's feedback point (joint layout: the sensed dims); None in the tied layout,
         # where the fed-back point is a whole SM point

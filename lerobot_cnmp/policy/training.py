@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from lerobot_cnmp.data.bank import EpisodeBank
@@ -42,11 +43,17 @@ def set_dataset(policy, dataset_meta) -> None:
     set_bank(policy, EpisodeBank.from_dataset(dataset_meta.root, policy.config.spec), fps=float(dataset_meta.fps))
     if policy.config.image_keys:
         policy._first_frames = FirstFrames(dataset_meta, policy.config.image_keys)
+        if policy.config.image_encoder.center:  # the demos' mean first frame (a checkpoint's loads over it)
+            frames = policy._first_frames(torch.tensor(sorted(policy._first_frames.first)))
+            for key in policy.config.image_keys:
+                policy.image_encoders[key.replace(".", "_")].mean_image.copy_(frames[key].mean(dim=0))
 
 
-def training_inputs(policy, episode_index: Tensor, draws: int) -> Tensor | None:
-    """The episode-level input (normalized γ, the conv encoder's embedding of the first frame) of each named
-    episode, computed once and repeated over its ``draws``; None when there is neither."""
+def training_inputs(policy, episode_index: Tensor, draws: int, generator: torch.Generator | None = None
+                    ) -> Tensor | None:
+    """The episode-level input (normalized γ, the conv encoder's embedding of the first frame, randomly
+    shifted by ``image_encoder.shift``) of each named episode, computed once and repeated over its ``draws``;
+    None when there is neither."""
     c = policy.config
     dev = policy.normalizer.sm_std.device
     gamma = policy.bank.task_params_of(episode_index)
@@ -57,7 +64,9 @@ def training_inputs(policy, episode_index: Tensor, draws: int) -> Tensor | None:
         if policy._first_frames is None:
             raise RuntimeError("this CNMP conditions on images: build it with `dataset_meta=` to train")
         images = policy._first_frames(episode_index)
-        parts += [embed(policy.image_encoders, k, images[k].to(dev)) for k in c.image_keys]
+        shift = c.image_encoder.shift
+        parts += [embed(policy.image_encoders, k, images[k].to(dev), shift=shift, generator=generator)
+                  for k in c.image_keys]
     inputs = join(parts)
     if inputs is not None and draws > 1:
         inputs = inputs.repeat_interleave(draws, dim=0)
@@ -81,7 +90,7 @@ def episodes_for(policy, episode_index: Tensor, generator: torch.Generator | Non
                                      generator)
     values = policy.normalizer.sm(values.to(dev))
     valid = torch.ones(phase.shape, dtype=torch.bool, device=dev)
-    return Episodes(values, phase.to(dev), valid, training_inputs(policy, episode_index, draws))
+    return Episodes(values, phase.to(dev), valid, training_inputs(policy, episode_index, draws, generator))
 
 
 def feedback_draws(policy, episode_index: Tensor, generator: torch.Generator | None = None,
@@ -95,7 +104,7 @@ def feedback_draws(policy, episode_index: Tensor, generator: torch.Generator | N
     dev = policy.normalizer.sm_std.device
     episode_index = episode_index.reshape(-1)
     if inputs is None:
-        inputs = training_inputs(policy, episode_index, c.sampling.draws_per_sample)
+        inputs = training_inputs(policy, episode_index, c.sampling.draws_per_sample, generator)
     m = c.sampling.m_max_targets if c.sampling.feedback_draw_queries is None else int(c.sampling.feedback_draw_queries)
     values, phase = policy.bank.draw_feedback(episode_index.repeat_interleave(c.sampling.draws_per_sample), m, generator)
     values, phase = policy.normalizer.sm(values.to(dev)), phase.to(dev)
@@ -129,6 +138,12 @@ def training_loss(policy, batch: dict[str, Tensor], generator: torch.Generator |
         info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
         loss = (1.0 - w) * loss + w * fb_loss
         info["nll"] = loss.item()
+    if policy.final_point_head is not None:  # auxiliary: the images' embedding -> the episode's last SM point
+        embedding = episodes.task_params[:: c.sampling.draws_per_sample, c.task_dim:]
+        last = policy.normalizer.sm(policy.bank.last_points_of(batch["episode_index"]).to(embedding.device))
+        aux = F.mse_loss(policy.final_point_head(embedding), last)
+        loss = loss + c.image_encoder.final_point_weight * aux
+        info = {**info, "final_point_mse": aux.item()}
     return loss, info
 
 

@@ -100,7 +100,7 @@ def record(name: str) -> None:
     torch.manual_seed(2)
     policy.reset()
     chunk = policy.predict_action_chunk(dict(obs[0])).numpy()
-    np.savez(out / "actions.npz", select_action=steps, chunk=chunk, losses=np.asarray(losses),
+    np.savez_compressed(out / "actions.npz", select_action=steps, chunk=chunk, losses=np.asarray(losses),
              train_episodes=np.asarray(meta.total_episodes),
              **{f"obs.{k}": np.stack([o[k].numpy() for o in obs]) for k in keys})
     print(f"{name}: {steps.shape} actions, chunk {chunk.shape}, input {keys}")
