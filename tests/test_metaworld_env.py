@@ -149,3 +149,25 @@ def test_record_camera_errors(tmp_path):
         record_dataset("cnmp_metaworld", tmp_path / "b", n_episodes=1, conditions="push-v3", progress=False,
                        camera_size=64)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_the_first_camera_frame_shows_this_episodes_goal():
+    """MetaWorld moves its goal marker after each step, not at reset: frame 0 must show the new episode's goal
+    (where the marker is after a step), not the last episode's."""
+    env = MetaWorldEnv("push-v3", terminate_on_success=False, cameras=["corner3"], camera_size=64)
+
+    def goal_pixels(img):  # push's goal marker is pure green
+        im = img.astype(int)
+        ys, xs = np.nonzero((im[..., 1] > 120) & (im[..., 0] < 80) & (im[..., 2] < 80))
+        return np.array([xs.mean(), ys.mean()]) if len(xs) else None
+
+    for seed in (1, 3):
+        env.reset(seed=seed - 1)
+        for _ in range(5):
+            env.step(np.zeros(4))
+        obs, _ = env.reset(seed=seed)
+        after, _, _, _, _ = env.step(np.zeros(4))
+        first, later = goal_pixels(obs["pixels"]["corner3"]), goal_pixels(after["pixels"]["corner3"])
+        assert first is not None and later is not None
+        np.testing.assert_allclose(first, later, atol=1.0)
+    env.close()

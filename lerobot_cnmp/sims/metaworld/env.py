@@ -114,6 +114,9 @@ class MetaWorldEnv(gym.Env):
         if seed is not None:
             self._mw.seed(int(seed))
         self.raw_obs, _ = self._mw.reset()
+        if self.cameras:  # MetaWorld places its goal marker after each step, not at reset: place it for frame 0
+            for site in self._mw._target_site_config:
+                self._mw._set_pos_site(*site)
         self.gamma = np.concatenate([self.raw_obs[4:7], self.raw_obs[36:39]]).astype(np.float32)
         self._step = 0
         return self._obs(), {"is_success": False, "task_params": self.gamma.copy()}
