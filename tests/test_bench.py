@@ -273,3 +273,13 @@ def test_no_bench_edits_sys_path():
         assert "sys.path" not in text, path.name
         if 'if __name__ == "__main__"' in text:
             assert f"python -m bench.{path.stem}" in text, path.name
+
+
+def test_camera_probe_r2_finds_a_linear_code_and_not_noise():
+    from bench.camera_probe import loo_r2
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(50, 6))
+    y = np.c_[x @ rng.normal(size=6), rng.normal(size=50), np.full(50, 0.3)]
+    r2 = loo_r2(x, y)
+    assert r2[0] > 0.99 and r2[1] < 0.2 and r2[2] is None
