@@ -35,7 +35,7 @@ from lerobot.configs import FeatureType
 from tqdm import tqdm
 
 from lerobot_cnmp.record_card import record_command, write_card
-from lerobot_cnmp.sims.cameras import camera_options
+from lerobot_cnmp.sims.cameras import camera_options, camera_video_encoder
 from lerobot_cnmp.sims.registry import SIMS, SimSpec
 
 IMAGE_WRITER_THREADS = 2  # threads writing the PNG frames of image features
@@ -224,7 +224,7 @@ def record_dataset(
             fps=cfg.fps,
             features=features,
             root=tmp_parent / "dataset",
-            use_videos=video,
+            use_videos=video, rgb_encoder=camera_video_encoder() if video else None,
             # PNG encoding of image frames in background threads (finalize stops them)
             image_writer_threads=IMAGE_WRITER_THREADS if has_images else 0,
         )
