@@ -227,15 +227,17 @@ def eval_command(task: str, method: str, ckpt: Path, n_episodes: int, batch_size
 
 
 def env_config(task: str):
-    """The task's EnvConfig built from the same ``--env.*`` arguments that lerobot-eval gets (``type`` picks
-    the registered class, the others are string fields or ``null``)."""
+    """The task's EnvConfig built from the same ``--env.*`` arguments that lerobot-eval gets, parsed by draccus as
+    lerobot-eval parses them (``type`` picks the registered class; lists such as ``--env.cameras=[a,b]``)."""
+    import draccus
     from lerobot.envs.configs import EnvConfig
 
     import lerobot_cnmp.sims  # noqa: F401  (registers the env types)
 
-    kw = dict(a.removeprefix("--env.").split("=", 1) for a in TASKS[task]["env"])
-    cls = EnvConfig.get_choice_class(kw.pop("type"))
-    return cls(**{k: (None if v == "null" else v) for k, v in kw.items()})
+    args = [a.removeprefix("--env.") for a in TASKS[task]["env"]]
+    kind = next(a.split("=", 1)[1] for a in args if a.startswith("type="))
+    return draccus.parse(config_class=EnvConfig.get_choice_class(kind),
+                         args=[f"--{a}" for a in args if not a.startswith("type=")])
 
 
 def env_state_copy(task: str, out: Path) -> Path:

@@ -375,3 +375,10 @@ def test_camera_cells_are_one_rule_and_see_no_gamma(tmp_path):
     with mock.patch.dict(cells.TASKS, {"cnmp_metaworld_push_cam": missing}), \
             pytest.raises(cells.CellError, match="record it with: lerobot-cnmp-record"):
         run.run_seed("cnmp_metaworld_push_cam", "cnmp", 5, 0, out=tmp_path, schedule_for=None)
+
+
+def test_env_config_parses_the_eval_arguments_as_lerobot_eval_does():
+    """The latency step's EnvConfig comes from the same --env.* arguments, lists and nulls included."""
+    cam = cells.env_config("cnmp_metaworld_push_cam")
+    assert cam.cameras == cells.CAMERAS and cam.task == "push-v3" and "environment_state" not in cam.features
+    assert cells.env_config("cnmp_obstacle2d").render_mode is None
