@@ -332,6 +332,7 @@ def run_seed(task: str, method: str, n: int, seed: int, *, out: Path, schedule_f
                        "provenance": run_provenance(), "points": []}.items():
         rec.setdefault(key, value)
     rec["status"] = "running"
+    rec.pop("error", None)  # a resumed seed: the failure of the previous attempt is no longer its state
     env = child_env()
     if method == "promp":
         if not rec.get("train", {}).get("finished"):

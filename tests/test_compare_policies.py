@@ -165,6 +165,7 @@ def test_a_cut_training_resumes_and_keeps_its_clock(tmp_path, fake):
     assert "--resume=true" in resumed["command"] and resumed["start_step"] == 600
     assert rec["train"]["checkpoint_loop_s"]["1200"] == 120.0  # 60 s before the cut + 60 s after the resume
     assert rec["heldout"]["step"] == 1200 and rec["heldout"]["pc_success"] == 70.0
+    assert rec["status"] == "ok" and "error" not in rec
     probes = [c for c in fake.commands if "rate_probes" in " ".join(c)]
     assert len(probes) == 1  # the rate is measured once per task and method
 
@@ -208,6 +209,7 @@ def test_a_seed_that_failed_in_its_probe_resumes(tmp_path, fake):
     assert cp.main([*ARGS, "--seeds", "1000", "--out", str(tmp_path)]) == 0
     rec = json.loads(path.read_text())
     assert rec["status"] == "ok" and len(rec["points"]) == 3
+    assert "error" not in rec  # the resumed seed's record does not keep the failure it recovered from
 
 
 def test_promp_is_one_fit_and_one_point(tmp_path, fake):
