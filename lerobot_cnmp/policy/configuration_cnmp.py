@@ -21,7 +21,8 @@ from lerobot_cnmp.data import sm_spec
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS, SMSpec  # noqa: F401  (TASK_PARAMS: re-exported)
 from lerobot_cnmp.execution.conditions import slot_size
 from lerobot_cnmp.execution.config import ExecutionConfig
-from lerobot_cnmp.policy.image_config import ImageEncoderConfig, check as _check, is_count as _is_count
+from lerobot_cnmp.policy.config_checks import check as _check, is_count as _is_count
+from lerobot_cnmp.policy.image_config import ImageEncoderConfig
 from lerobot_cnmp.policy.legacy import decode_with_upgrade  # noqa: F401  (installs the legacy upgrade on decoding)
 
 

@@ -1,21 +1,11 @@
-"""How the conv encoder reads a camera image (``--policy.image_encoder.*``), and the checks the config
-sections share."""
+"""How the conv encoder reads a camera image (``--policy.image_encoder.*``)."""
 
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 
-
-def check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError(message)
-
-
-def is_count(x, low: int = 0) -> bool:
-    """An integer >= low (bools, NaN and inf are not)."""
-    return not isinstance(x, bool) and isinstance(x, numbers.Real) and math.isfinite(x) and x == int(x) and x >= low
+from lerobot_cnmp.policy.config_checks import check, is_count
 
 
 @dataclass
@@ -33,7 +23,6 @@ class ImageEncoderConfig:
             at every training step. 0: none. Execution always sees the unshifted image.
         downsample: Average-pool the image by this factor before the first conv (1: none). On a CPU the first
             full-resolution conv costs most of the encoder: 2 makes a 128 x 128 camera cost about a fifth.
-
         center: Subtract the training demos' mean first frame (per pixel; a statistic of the dataset saved
             with the weights, as the SM's mean is) before the conv: with a fixed camera what remains is what
             differs between episodes (where the object and the goal are), not the scene all demos share.
