@@ -84,3 +84,30 @@ def test_trained_configs_from_before_the_setting_load_without_the_term():
     assert upgrade_config_dict({"dataset_fps": 80.0})["linear_task_term"] is False  # a checkpoint's config
     assert "linear_task_term" not in upgrade_config_dict({"dataset_fps": None})  # a config to train from
     assert upgrade_config_dict({"dataset_fps": 80.0, "linear_task_term": True})["linear_task_term"] is True
+
+
+def _camera_config(**kw) -> CNMPConfig:
+    """γ-free, one camera (the cameras-only datasets' shape): the state and the action, joint layout."""
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    cfg = small(use_images=True, image_channels=(4, 8), image_embed_dim=6, **kw)
+    cfg.input_features = {"observation.state": PolicyFeature(type=FeatureType.STATE, shape=(2,)),
+                          "observation.images.top": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))}
+    cfg.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(2,))}
+    return cfg
+
+
+@pytest.mark.parametrize("tied", [False, True])
+def test_rule_counts_the_image_embedding_as_the_episode_input(tied):
+    """From cameras only (no γ) the embedding is the episode-level input: the term is on in the joint layout,
+    linear in the embedding, and off in the tied layout (the paper's room, Exp B, keeps its network)."""
+    from lerobot_cnmp.policy import rules
+
+    cfg = _camera_config(state_tracks_action=tied)
+    policy = CNMPPolicy(cfg)  # resolves the SM layout; no dataset: the term stays off
+    assert cfg.task_dim == 0 and cfg.episode_dim == 6 and cfg.linear_task_term is False
+    assert rules.linear_task_term(cfg) is (not tied)
+    if not tied:
+        cfg.linear_task_term = True
+        on = CNMPPolicy(cfg)
+        assert on.model.task_gain.shape == (cfg.sm_dim, 2 * 6) and policy.model.task_gain is None

@@ -171,7 +171,7 @@ class CNMPConfig(PreTrainedConfig):
         min_std: Floor of the predicted σ (normalized units): σ = min_std + softplus(raw).
         phase_frequencies: K > 0 adds sin/cos(k·π·t), k = 1..K, to the phase input of E and Q (Fourier
             features, for sharper timing); 0 feeds the raw phase t only, as in the paper.
-        linear_task_term: Add ProMP's linear map from γ to μ, A(t)·γ (``CNMP``'s ``task_gain``). None: by
+        linear_task_term: Add ProMP's linear map from the episode input (γ, image embeddings) to μ, A(t)·γ. None: by
             the rule of :func:`lerobot_cnmp.policy.rules.linear_task_term` when training from a dataset, else off.
         n_experts: K, the number of query networks. 1: the paper's CNMP, one Gaussian decoder. K > 1: a
             mixture decoder (``mixture``), for demonstrations with modes the conditions do not decide.
