@@ -678,9 +678,39 @@ def test_keypoint_centered_encoder_trains_and_saves_its_mean_image(tmp_path):
     loss.backward()
     assert torch.isfinite(loss) and enc.conv[1].weight.grad.abs().sum() > 0
     assert info["final_point_mse"] > 0 and policy.final_point_head.weight.grad.abs().sum() > 0
-    last = policy.bank.last_points_of(torch.tensor([1]))
-    torch.testing.assert_close(last[0], policy.bank.values[policy.bank.starts[1] + policy.bank.lengths[1] - 1])
+    last = policy.bank.points_of(torch.tensor([1]), (1.0,))
+    torch.testing.assert_close(last[0, 0], policy.bank.values[policy.bank.starts[1] + policy.bank.lengths[1] - 1])
     policy.save_pretrained(tmp_path)
     back = CNMPPolicy.from_pretrained(tmp_path)
     torch.testing.assert_close(back.image_encoders[IMG.replace(".", "_")].mean_image, enc.mean_image)
     assert back.config.image_encoder.center and back.config.image_encoder.downsample == 2
+
+
+def test_auxiliary_head_predicts_the_sm_at_each_point_phase():
+    """point_phases: the head outputs one SM point per phase, and the loss compares them with the demo's SM at
+    frame round(phase * (length - 1)) (a head that predicts exactly those points has zero auxiliary error)."""
+    from lerobot_cnmp.data.bank import EpisodeBank
+    from lerobot_cnmp.policy.image_config import ImageEncoderConfig
+
+    demos = [np.arange(20 * 2, dtype=np.float32).reshape(20, 2) + 100 * i for i in range(3)]
+    bank = EpisodeBank.from_arrays(demos)
+    points = bank.points_of(torch.tensor([2, 0]), (0.0, 0.5, 1.0))
+    torch.testing.assert_close(points, torch.from_numpy(np.stack([demos[2][[0, 10, 19]], demos[0][[0, 10, 19]]])))
+    torch.manual_seed(0)
+    enc = ImageEncoderConfig(keypoints=True, final_point_weight=1.0, point_phases=[0.0, 0.5, 1.0])
+    policy = CNMPPolicy(image_config(image_encoder=enc))
+    assert policy.final_point_head.out_features == 3 * 2
+    policy.set_bank(bank, None)
+    policy._first_frames = _Frames()
+    # a head that ignores the embedding and outputs the normalized points of episode 1 at the three phases
+    target = policy.normalizer.sm(bank.points_of(torch.tensor([1]), enc.point_phases)).flatten()
+    with torch.no_grad():
+        policy.final_point_head.weight.zero_()
+        policy.final_point_head.bias.copy_(target)
+    _, info = policy.forward({"episode_index": torch.tensor([1])})
+    assert info["final_point_mse"] < 1e-10
+    _, info = policy.forward({"episode_index": torch.tensor([0])})
+    assert info["final_point_mse"] > 1e-3
+    for bad in ([], [1.5], [-0.1, 1.0]):
+        with pytest.raises(ValueError, match="image_encoder.point_phases"):
+            ImageEncoderConfig(point_phases=bad)

@@ -166,10 +166,11 @@ class EpisodeBank:
         """γ of each named episode (its first frame), [B, G] raw units; None without task parameters."""
         return None if self.task_params is None else self.task_params[self.rows(episode_index)]
 
-    def last_points_of(self, episode_index: Tensor) -> Tensor:
-        """The SM point at each named episode's last frame, [B, D] raw units."""
+    def points_of(self, episode_index: Tensor, phases: tuple[float, ...]) -> Tensor:
+        """The SM points at ``phases`` (frame round(phase * (length - 1))) of each named episode, [B, P, D] raw."""
         rows = self.rows(episode_index)
-        return self.values[self.starts[rows] + self.lengths[rows] - 1]
+        offsets = torch.round(torch.tensor(phases, dtype=torch.float64)[None] * (self.lengths[rows, None] - 1))
+        return self.values[self.starts[rows, None] + offsets.long()]
 
     def sample_episodes(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``n`` dataset episode ids, each drawn with probability ∝ its length (as a uniform frame's episode)."""

@@ -31,6 +31,10 @@ class ImageEncoderConfig:
             from the images' embedding, squared error. 0: none. It asks the encoder for what decides the end of
             the movement, which the decoder can otherwise memorize per episode from any feature that tells the
             few demos apart (the object's position).
+        point_phases: The phases in [0, 1] of the SM points the auxiliary head of ``final_point_weight``
+            predicts (each episode's SM at frame round(phase * (length - 1))). (1.0,): the last point only. More
+            phases ask the encoder for more of the demo's path from its first image, e.g. where the hand went to
+            grasp the object midway, not only where the movement ends.
     """
 
     keypoints: bool = False
@@ -38,10 +42,14 @@ class ImageEncoderConfig:
     downsample: int = 1
     center: bool = False
     final_point_weight: float = 0.0
+    point_phases: tuple[float, ...] = (1.0,)
 
     def __post_init__(self):
         check(is_count(self.shift), f"image_encoder.shift must be an integer >= 0 (pixels), got {self.shift}")
         check(is_count(self.downsample, 1), f"image_encoder.downsample must be an integer >= 1, got {self.downsample}")
         check(0.0 <= self.final_point_weight < math.inf,
               f"image_encoder.final_point_weight must be a finite number >= 0, got {self.final_point_weight}")
+        self.point_phases = tuple(float(p) for p in self.point_phases)
+        check(len(self.point_phases) > 0 and all(0.0 <= p <= 1.0 for p in self.point_phases),
+              f"image_encoder.point_phases must be a non-empty list of phases in [0, 1], got {self.point_phases}")
         self.shift, self.downsample = int(self.shift), int(self.downsample)

@@ -87,8 +87,9 @@ class CNMPPolicy(PreTrainedPolicy):
             for key in config.image_keys
         })
         self.model = _network_from_config(config)
-        # the auxiliary head of image_encoder.final_point_weight: images' embedding -> the episode's last SM point
-        self.final_point_head = (nn.Linear(len(config.image_keys) * config.image_embed_dim, config.sm_dim)
+        # the auxiliary head of image_encoder.final_point_weight: images' embedding -> the SM at point_phases
+        self.final_point_head = (nn.Linear(len(config.image_keys) * config.image_embed_dim,
+                                           config.sm_dim * len(config.image_encoder.point_phases))
                                  if config.image_keys and config.image_encoder.final_point_weight > 0 else None)
         self.normalizer = SMNormalizer(config.sm_dim, config.task_dim)
         # the mask of execution's feedback point (joint layout: the sensed dims); None in the tied layout,

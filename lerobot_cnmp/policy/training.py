@@ -138,10 +138,11 @@ def training_loss(policy, batch: dict[str, Tensor], generator: torch.Generator |
         info = {**info, "nll_random": info["nll"], "nll_feedback": fb_info["nll"]}
         loss = (1.0 - w) * loss + w * fb_loss
         info["nll"] = loss.item()
-    if policy.final_point_head is not None:  # auxiliary: the images' embedding -> the episode's last SM point
+    if policy.final_point_head is not None:  # auxiliary: the images' embedding -> the episode's SM at point_phases
         embedding = episodes.task_params[:: c.sampling.draws_per_sample, c.task_dim:]
-        last = policy.normalizer.sm(policy.bank.last_points_of(batch["episode_index"]).to(embedding.device))
-        aux = F.mse_loss(policy.final_point_head(embedding), last)
+        phases = c.image_encoder.point_phases
+        points = policy.normalizer.sm(policy.bank.points_of(batch["episode_index"], phases).to(embedding.device))
+        aux = F.mse_loss(policy.final_point_head(embedding), points.flatten(1))
         loss = loss + c.image_encoder.final_point_weight * aux
         info = {**info, "final_point_mse": aux.item()}
     return loss, info
