@@ -1,12 +1,15 @@
 """What does an image CNMP's encoder know about the scene? A linear probe of the dataset's ground-truth γ.
 
     python -m bench.camera_probe --checkpoint CKPT --dataset datasets/cnmp_metaworld_push_cam
+    python -m bench.camera_probe --checkpoint CKPT --dataset datasets/cnmp_metaworld_push_cam --heldout_task push-v3
 
 Embeds each episode's first frame with the checkpoint's conv encoders (as training and execution do) and fits a
 ridge regression from the embeddings to ``ground_truth.task_params`` (the object and goal positions the policy
 never reads), leave-one-episode-out. Prints R² per γ entry: near 1, the embedding locates that entry; <= 0, it
 carries nothing linear about it (an entry constant over the dataset, such as the table height, has no R²).
-Last line: one JSON object.
+With ``--heldout_task``, also the R² on scenes the encoder never saw: the ridge fitted on all the dataset's
+episodes predicts γ from the first camera frames of ``--heldout`` fresh ``cnmp_metaworld`` resets (the
+evaluation's seeds, 100000 on), rendered live as in execution. Last line: one JSON object.
 """
 
 from __future__ import annotations
@@ -30,10 +33,45 @@ def loo_r2(x: np.ndarray, y: np.ndarray, ridge: float = 1e-2) -> list[float | No
     return [None if v < 1e-10 else round(float(1 - (e ** 2).mean() / v), 3) for e, v in zip(err.T, var)]
 
 
+def heldout_r2(x: np.ndarray, y: np.ndarray, x_new: np.ndarray, y_new: np.ndarray, ridge: float = 1e-2
+               ) -> list[float | None]:
+    """R² on (x_new, y_new) of a ridge regression y ~ [x, 1] fitted on all of (x, y), per column of y (None for
+    a column constant in y_new)."""
+    xb = np.c_[x, np.ones(len(x))]
+    w = np.linalg.solve(xb.T @ xb + ridge * np.eye(xb.shape[1]), xb.T @ y)
+    err = np.c_[x_new, np.ones(len(x_new))] @ w - y_new
+    var = y_new.var(0)
+    return [None if v < 1e-10 else round(float(1 - (e ** 2).mean() / v), 3) for e, v in zip(err.T, var)]
+
+
+def heldout_scenes(policy, task: str, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Embeddings and γ of the first frames of ``n`` fresh resets of ``cnmp_metaworld`` ``task`` (seeds 100000
+    on), rendered at the checkpoint's camera size."""
+    from lerobot_cnmp.policy.inputs import embed
+    from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv
+
+    keys = policy.config.image_keys
+    cams = [k.removeprefix("observation.images.") for k in keys]
+    size = int(policy.config.input_features[keys[0]].shape[-1])
+    env = MetaWorldEnv(task=task, max_episode_steps=10, cameras=cams, camera_size=size)
+    emb, gamma = [], []
+    with torch.no_grad():
+        for i in range(n):
+            obs, info = env.reset(seed=100000 + i)
+            frames = {k: torch.from_numpy(obs["pixels"][c]).permute(2, 0, 1)[None].float() / 255.0
+                      for c, k in zip(cams, keys)}
+            emb.append(torch.cat([embed(policy.image_encoders, k, frames[k]) for k in keys], -1)[0].numpy())
+            gamma.append(np.asarray(info["task_params"], dtype=np.float64))
+    env.close()
+    return np.array(emb), np.array(gamma)
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--dataset", required=True, help="a camera dataset with ground_truth.task_params")
+    p.add_argument("--heldout_task", help="a MetaWorld task (e.g. push-v3): also probe fresh scenes of it")
+    p.add_argument("--heldout", type=int, default=40, help="number of fresh scenes (seeds 100000 on)")
     args = p.parse_args(argv)
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -58,6 +96,10 @@ def main(argv=None) -> dict:
     r2 = loo_r2(np.array(emb), np.array(gamma))
     res = {"checkpoint": args.checkpoint, "dataset": args.dataset, "episodes": len(emb),
            "loo_r2": dict(zip(names, r2))}
+    if args.heldout_task:
+        x, y = heldout_scenes(policy, args.heldout_task, args.heldout)
+        res.update(heldout_task=args.heldout_task, heldout_seeds=[100000, 100000 + args.heldout - 1],
+                   heldout_r2=dict(zip(names, heldout_r2(np.array(emb), np.array(gamma), x, y))))
     print(json.dumps(res))
     return res
 

@@ -283,3 +283,18 @@ def test_camera_probe_r2_finds_a_linear_code_and_not_noise():
     y = np.c_[x @ rng.normal(size=6), rng.normal(size=50), np.full(50, 0.3)]
     r2 = loo_r2(x, y)
     assert r2[0] > 0.99 and r2[1] < 0.2 and r2[2] is None
+
+
+def test_camera_probe_heldout_r2_scores_new_scenes_with_the_fit_on_the_dataset():
+    """The held-out R² fits on the dataset's episodes and scores the fresh scenes: a linear code generalizes
+    (R² near 1), an entry fitted only by chance does not, and a constant entry has none."""
+    from bench.camera_probe import heldout_r2
+
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=6)
+    x, x_new = rng.normal(size=(50, 6)), rng.normal(size=(40, 6))
+    y = np.c_[x @ w, rng.normal(size=50), np.full(50, 0.3)]
+    y_new = np.c_[x_new @ w, rng.normal(size=40), np.full(40, 0.3)]
+    r2 = heldout_r2(x, y, x_new, y_new)
+    assert r2[0] > 0.99 and r2[1] < 0.2 and r2[2] is None
+    assert heldout_r2(x, y, x_new, -y_new)[0] < 0  # scored against the new scenes' values, not refitted
