@@ -32,7 +32,8 @@ class ImageEncoderConfig:
             the movement, which the decoder can otherwise memorize per episode from any feature that tells the
             few demos apart (the object's position).
         point_phases: The phases in [0, 1] of the SM points the auxiliary head of ``final_point_weight``
-            predicts (each episode's SM at frame round(phase * (length - 1))). (1.0,): the last point only. More
+            predicts (each episode's SM at frame round(phase * (length - 1))); the squared errors are summed
+            over the phases, so each point weighs as the last one alone. (1.0,): the last point only. More
             phases ask the encoder for more of the demo's path from its first image, e.g. where the hand went to
             grasp the object midway, not only where the movement ends.
     """

@@ -142,7 +142,9 @@ def training_loss(policy, batch: dict[str, Tensor], generator: torch.Generator |
         embedding = episodes.task_params[:: c.sampling.draws_per_sample, c.task_dim:]
         phases = c.image_encoder.point_phases
         points = policy.normalizer.sm(policy.bank.points_of(batch["episode_index"], phases).to(embedding.device))
-        aux = F.mse_loss(policy.final_point_head(embedding), points.flatten(1))
+        # squared error averaged over the SM dims, summed over the phases: each point weighs as the last alone
+        error = (policy.final_point_head(embedding) - points.flatten(1)).square().view(points.shape)
+        aux = error.mean(dim=-1).sum(dim=-1).mean()
         loss = loss + c.image_encoder.final_point_weight * aux
         info = {**info, "final_point_mse": aux.item()}
     return loss, info
