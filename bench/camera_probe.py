@@ -21,33 +21,45 @@ import numpy as np
 import torch
 
 
+def ridge_fit(x: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray:
+    """Weights of the ridge regression y ~ [x, 1]."""
+    xb = np.c_[x, np.ones(len(x))]
+    return np.linalg.solve(xb.T @ xb + ridge * np.eye(xb.shape[1]), xb.T @ y)
+
+
+def r2_per_column(err: np.ndarray, y: np.ndarray) -> list[float | None]:
+    """1 - mean squared error / variance of y, per column (None for a column constant in y)."""
+    return [None if v < 1e-10 else round(float(1 - (e ** 2).mean() / v), 3) for e, v in zip(err.T, y.var(0))]
+
+
 def loo_r2(x: np.ndarray, y: np.ndarray, ridge: float = 1e-2) -> list[float | None]:
     """Leave-one-out R² of a ridge regression y ~ [x, 1], per column of y (None for a constant column)."""
-    xb = np.c_[x, np.ones(len(x))]
     err = np.empty_like(y)
     for i in range(len(x)):
         keep = np.arange(len(x)) != i
-        w = np.linalg.solve(xb[keep].T @ xb[keep] + ridge * np.eye(xb.shape[1]), xb[keep].T @ y[keep])
-        err[i] = xb[i] @ w - y[i]
-    var = y.var(0)
-    return [None if v < 1e-10 else round(float(1 - (e ** 2).mean() / v), 3) for e, v in zip(err.T, var)]
+        err[i] = np.r_[x[i], 1.0] @ ridge_fit(x[keep], y[keep], ridge) - y[i]
+    return r2_per_column(err, y)
 
 
 def heldout_r2(x: np.ndarray, y: np.ndarray, x_new: np.ndarray, y_new: np.ndarray, ridge: float = 1e-2
                ) -> list[float | None]:
     """R² on (x_new, y_new) of a ridge regression y ~ [x, 1] fitted on all of (x, y), per column of y (None for
     a column constant in y_new)."""
-    xb = np.c_[x, np.ones(len(x))]
-    w = np.linalg.solve(xb.T @ xb + ridge * np.eye(xb.shape[1]), xb.T @ y)
-    err = np.c_[x_new, np.ones(len(x_new))] @ w - y_new
-    var = y_new.var(0)
-    return [None if v < 1e-10 else round(float(1 - (e ** 2).mean() / v), 3) for e, v in zip(err.T, var)]
+    err = np.c_[x_new, np.ones(len(x_new))] @ ridge_fit(x, y, ridge) - y_new
+    return r2_per_column(err, y_new)
+
+
+def embedding(policy, frames: dict[str, torch.Tensor]) -> np.ndarray:
+    """The episode-level image embedding (every image feature's, concatenated) of one frame per feature [1, C, H, W]."""
+    from lerobot_cnmp.policy.inputs import embed
+
+    with torch.no_grad():
+        return torch.cat([embed(policy.image_encoders, k, frames[k]) for k in policy.config.image_keys], -1)[0].numpy()
 
 
 def heldout_scenes(policy, task: str, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Embeddings and γ of the first frames of ``n`` fresh resets of ``cnmp_metaworld`` ``task`` (seeds 100000
     on), rendered at the checkpoint's camera size."""
-    from lerobot_cnmp.policy.inputs import embed
     from lerobot_cnmp.sims.metaworld.env import MetaWorldEnv
 
     keys = policy.config.image_keys
@@ -55,13 +67,11 @@ def heldout_scenes(policy, task: str, n: int) -> tuple[np.ndarray, np.ndarray]:
     size = int(policy.config.input_features[keys[0]].shape[-1])
     env = MetaWorldEnv(task=task, max_episode_steps=10, cameras=cams, camera_size=size)
     emb, gamma = [], []
-    with torch.no_grad():
-        for i in range(n):
-            obs, info = env.reset(seed=100000 + i)
-            frames = {k: torch.from_numpy(obs["pixels"][c]).permute(2, 0, 1)[None].float() / 255.0
-                      for c, k in zip(cams, keys)}
-            emb.append(torch.cat([embed(policy.image_encoders, k, frames[k]) for k in keys], -1)[0].numpy())
-            gamma.append(np.asarray(info["task_params"], dtype=np.float64))
+    for i in range(n):
+        obs, info = env.reset(seed=100000 + i)
+        emb.append(embedding(policy, {k: torch.from_numpy(obs["pixels"][c]).permute(2, 0, 1)[None].float() / 255.0
+                                      for c, k in zip(cams, keys)}))
+        gamma.append(np.asarray(info["task_params"], dtype=np.float64))
     env.close()
     return np.array(emb), np.array(gamma)
 
@@ -77,7 +87,6 @@ def main(argv=None) -> dict:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from lerobot_cnmp.api import load_pretrained
-    from lerobot_cnmp.policy.inputs import embed
     from lerobot_cnmp.sims.cameras import GROUND_TRUTH_TASK_PARAMS
 
     policy, _, _ = load_pretrained(args.checkpoint, device="cpu")
@@ -86,12 +95,10 @@ def main(argv=None) -> dict:
     if GROUND_TRUTH_TASK_PARAMS not in ds.meta.features:
         raise SystemExit(f"error: {args.dataset} has no {GROUND_TRUTH_TASK_PARAMS} (record it with --cameras)")
     emb, gamma = [], []
-    with torch.no_grad():
-        for start in np.asarray(ds.meta.episodes["dataset_from_index"]):
-            item = ds[int(start)]
-            emb.append(torch.cat([embed(policy.image_encoders, k, item[k][None]) for k in policy.config.image_keys],
-                                 -1)[0].numpy())
-            gamma.append(item[GROUND_TRUTH_TASK_PARAMS].numpy())
+    for start in np.asarray(ds.meta.episodes["dataset_from_index"]):
+        item = ds[int(start)]
+        emb.append(embedding(policy, {k: item[k][None] for k in policy.config.image_keys}))
+        gamma.append(item[GROUND_TRUTH_TASK_PARAMS].numpy())
     names = ds.meta.features[GROUND_TRUTH_TASK_PARAMS]["names"]
     r2 = loo_r2(np.array(emb), np.array(gamma))
     res = {"checkpoint": args.checkpoint, "dataset": args.dataset, "episodes": len(emb),
