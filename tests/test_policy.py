@@ -713,6 +713,6 @@ def test_auxiliary_head_predicts_the_sm_at_each_point_phase():
     # summed over the phases (each point weighs as the last alone), averaged over the SM dims
     expected = (target.view(3, 2) - policy.normalizer.sm(bank.points_of(torch.tensor([0]), enc.point_phases))[0])
     assert info["final_point_mse"] == pytest.approx(expected.square().mean(-1).sum().item(), rel=1e-5)
-    for bad in ([], [1.5], [-0.1, 1.0]):
+    for bad in ([], [1.5], [-0.1, 1.0], [float("nan")], ["a"], 0.5):
         with pytest.raises(ValueError, match="image_encoder.point_phases"):
             ImageEncoderConfig(point_phases=bad)

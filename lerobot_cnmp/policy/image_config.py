@@ -50,7 +50,10 @@ class ImageEncoderConfig:
         check(is_count(self.downsample, 1), f"image_encoder.downsample must be an integer >= 1, got {self.downsample}")
         check(0.0 <= self.final_point_weight < math.inf,
               f"image_encoder.final_point_weight must be a finite number >= 0, got {self.final_point_weight}")
-        self.point_phases = tuple(float(p) for p in self.point_phases)
-        check(len(self.point_phases) > 0 and all(0.0 <= p <= 1.0 for p in self.point_phases),
-              f"image_encoder.point_phases must be a non-empty list of phases in [0, 1], got {self.point_phases}")
+        message = f"image_encoder.point_phases must be a non-empty list of phases in [0, 1], got {self.point_phases!r}"
+        try:
+            self.point_phases = tuple(float(p) for p in self.point_phases)
+        except (TypeError, ValueError):
+            raise ValueError(message) from None
+        check(len(self.point_phases) > 0 and all(0.0 <= p <= 1.0 for p in self.point_phases), message)
         self.shift, self.downsample = int(self.shift), int(self.downsample)
