@@ -64,6 +64,7 @@ def test_names_follow_the_plugin():
     assert len(ACTION_NAMES) == ACTION_DIM
     assert SIMS["cnmp_so101"].feature_names == {
         "action": ACTION_NAMES, "agent_pos": AGENT_POS_NAMES, "environment_state": ENV_STATE_NAMES,
+        "task_params": ENV_STATE_NAMES,  # the ground truth recorded with cameras on
     }
 
 
@@ -90,19 +91,60 @@ def test_declared_features_match_observations(env):
     assert env.get_wrapper_attr("_max_episode_steps") == 300
 
 
-def test_image_obs_adds_pixels_next_to_the_state():
-    cfg = CNMPSO101Env(render_mode=None, image_obs=True, render_size=32)
-    assert cfg.features["pixels/front"].shape == (32, 32, 3)
-    assert cfg.features_map["pixels/front"] == "observation.images.front"
-    assert "pixels/front" not in CNMPSO101Env().features
+def _green_centre(frame: np.ndarray) -> np.ndarray:
+    """The pixel centroid of the goal mark's green (row, column) in a frame."""
+    f = frame.astype(int)
+    rows, cols = np.nonzero((f[..., 1] > 150) & (f[..., 0] < 80) & (f[..., 2] < 100))
+    assert rows.size > 0, "no goal mark in the frame"
+    return np.array([rows.mean(), cols.mean()])
+
+
+def test_cameras_replace_the_block_and_goal_positions():
+    cfg = CNMPSO101Env(render_mode=None, cameras=["table", "front"], camera_size=32)
+    assert cfg.features["pixels/table"].shape == (32, 32, 3)
+    assert cfg.features_map["pixels/table"] == "observation.images.table"
+    assert "environment_state" not in cfg.features and "environment_state" not in cfg.features_map
+    assert cfg.ground_truth == {"ground_truth.task_params": "task_params"}
+    assert "pixels/table" not in CNMPSO101Env().features and CNMPSO101Env().ground_truth == {}
     e = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
     try:
-        obs, _ = e.reset(seed=0)
-        assert obs["environment_state"].shape == (6,)
-        assert obs["pixels"]["front"].shape == (32, 32, 3) and obs["pixels"]["front"].dtype == np.uint8
-        assert e.observation_space["pixels"]["front"].shape == (32, 32, 3)
+        obs, info = e.reset(seed=0)
+        assert set(obs) == {"agent_pos", "pixels"} and set(e.observation_space.spaces) == {"agent_pos", "pixels"}
+        for cam in ("table", "front"):
+            assert obs["pixels"][cam].shape == (32, 32, 3) and obs["pixels"][cam].dtype == np.uint8
+            assert e.observation_space["pixels"][cam].shape == (32, 32, 3)
+        base = e.unwrapped
+        block_start = base.data.sensor("block_pos").data.copy()
+        np.testing.assert_allclose(info["task_params"], np.r_[block_start, base.goal_pos], atol=1e-6)
+        obs, _, _, _, info = e.step(np.array([0.5, 0.0, 0.5, 1.0]))
+        np.testing.assert_allclose(info["task_params"][:3], block_start, atol=1e-6)  # the episode's start
     finally:
         e.close()
+
+
+def test_the_goal_is_drawn_where_it_is():
+    """The goal has no body in the plugin's model: the table camera draws it, and the mark follows the goal."""
+    cfg = CNMPSO101Env(render_mode=None, cameras=["table"], camera_size=128)
+    e = gym.make(cfg.gym_id, disable_env_checker=True, **cfg.gym_kwargs)
+    try:
+        goals, centres = [], []
+        for seed in (0, 3):
+            obs, info = e.reset(seed=seed)
+            goals.append(info["task_params"][3:5])
+            centres.append(_green_centre(obs["pixels"]["table"]))
+    finally:
+        e.close()
+    # the camera looks along -x from in front of the robot: +y goes to the image's right, +x (nearer
+    # the camera) towards its bottom
+    dy, dx = goals[1][1] - goals[0][1], goals[1][0] - goals[0][0]
+    assert np.sign(centres[1][1] - centres[0][1]) == np.sign(dy) and abs(dy) > 0.02
+    assert np.sign(centres[1][0] - centres[0][0]) == np.sign(dx) and abs(dx) > 0.02
+
+
+def test_unknown_camera_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown camera"):
+        gym.make(CNMPSO101Env().gym_id, disable_env_checker=True,
+                 **CNMPSO101Env(render_mode=None, cameras=["wrist"]).gym_kwargs)
 
 
 def test_random_positions_follow_the_seed(env):

@@ -10,6 +10,8 @@ observation. The env still reports γ in ``info["task_params"]``, and the record
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import OBS_IMAGES
 
@@ -73,16 +75,58 @@ def camera_options(sims: dict, sim: str, cameras: list[str] | None, camera_size:
     return {"cameras": list(cameras), **({} if camera_size is None else {"camera_size": int(camera_size)})}
 
 
+@dataclass(frozen=True)
+class FreeView:
+    """A camera the model does not define: MuJoCo's free camera looking at ``lookat`` (m, world frame) from
+    ``distance`` (m), ``azimuth`` and ``elevation`` (degrees), as a user would mount one over the workspace."""
+
+    lookat: tuple[float, float, float]
+    distance: float
+    azimuth: float
+    elevation: float
+
+    def mjv_camera(self):
+        import mujoco
+
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        cam.lookat[:] = self.lookat
+        cam.distance, cam.azimuth, cam.elevation = self.distance, self.azimuth, self.elevation
+        return cam
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A flat disc drawn into a frame only (e.g. a goal that the task checks but the model does not show, as a
+    coloured mark taped on a real table): centre ``pos`` (m), ``radius`` (m), ``rgba``."""
+
+    pos: tuple[float, float, float]
+    radius: float
+    rgba: tuple[float, float, float, float]
+
+    def draw(self, geom) -> None:
+        import mujoco
+        import numpy as np
+
+        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CYLINDER, np.array([self.radius, self.radius, 5e-4]),
+                            np.asarray(self.pos, dtype=np.float64), np.eye(3).ravel(),
+                            np.asarray(self.rgba, dtype=np.float32))
+
+
 class FastRenderer:
     """``mujoco.Renderer`` over an env's model with shadows, reflections and the skybox off (with software EGL,
     no GPU, these cost most of a frame: MetaWorld's scene at 128 x 128 renders in ~20-30 ms without them).
-    Built on first use; :meth:`close` frees the GL context."""
+    Built on first use; :meth:`close` frees the GL context.
+
+    A camera is a name of the model's cameras or a :class:`FreeView` (a viewpoint the model does not define).
+    ``markers`` are drawn into the frame only (``mujoco.mjv_initGeom`` on the scene after ``update_scene``,
+    as MuJoCo's viewers draw decorations): they are not in the model and nothing collides with them."""
 
     def __init__(self, model, size: int):
         self.model, self.size = model, int(size)
         self._renderer = None
 
-    def __call__(self, data, camera: str):
+    def __call__(self, data, camera, markers: tuple[Marker, ...] = ()):
         import mujoco
         import numpy as np
 
@@ -91,7 +135,13 @@ class FastRenderer:
             for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
                          mujoco.mjtRndFlag.mjRND_SKYBOX):
                 self._renderer.scene.flags[flag] = 0
-        self._renderer.update_scene(data, camera=camera)
+        self._renderer.update_scene(data, camera=camera.mjv_camera() if isinstance(camera, FreeView) else camera)
+        scene = self._renderer.scene
+        for marker in markers:
+            if scene.ngeom >= scene.maxgeom:
+                raise RuntimeError(f"no room for a marker in the scene ({scene.maxgeom} geoms)")
+            marker.draw(scene.geoms[scene.ngeom])
+            scene.ngeom += 1
         return np.asarray(self._renderer.render(), dtype=np.uint8).copy()
 
     def close(self) -> None:

@@ -8,13 +8,13 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
+from lerobot_cnmp.sims.cameras import GROUND_TRUTH_TASK_PARAMS, camera_features, check_cameras
 from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
 from lerobot_cnmp.sims.so101.task import (
     ACTION_NAMES,
     AGENT_POS_NAMES,
-    CAMERA,
     CONTROL_FPS,
     DEFAULT_ACTION_SCALE,
     DEFAULT_MAX_EPISODE_STEPS,
@@ -43,8 +43,12 @@ class CNMPSO101Env(CNMPSimConfig):
             plugin's fixed block (0.25, 0) and goal (0.20, 0.08).
         action_scale: metres per unit of ``dx, dy, dz`` (0.025, the plugin's controllers' scale; the
             plugin's own default is 1.0).
-        image_obs: also observe the ``front`` camera as ``pixels/front`` (-> ``observation.images.front``),
-            ``render_size`` square; slow without a GPU (see the module docstring).
+        cameras: names of the plugin model's cameras (``front``, ``wrist_cam``) observed as
+            ``observation.images.<name>``. Non-empty: the block and goal positions are NOT given to the policy
+            (no ``environment_state``, as in a real SO-101 dataset); the recorder stores them (block start and
+            goal) as ``ground_truth.task_params`` for reports.
+        camera_size: side of each camera image, pixels (shadows, reflections and skybox off: ~0.1 s a frame
+            with software EGL, no GPU; see :mod:`lerobot_cnmp.sims.so101.env`).
         render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
     """
 
@@ -53,7 +57,8 @@ class CNMPSO101Env(CNMPSimConfig):
     episode_length: int = DEFAULT_MAX_EPISODE_STEPS
     random_block_position: bool = True
     action_scale: float = DEFAULT_ACTION_SCALE
-    image_obs: bool = False
+    cameras: list[str] = field(default_factory=list)
+    camera_size: int = DEFAULT_RENDER_SIZE
     render_size: int = DEFAULT_RENDER_SIZE
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
@@ -67,7 +72,6 @@ class CNMPSO101Env(CNMPSimConfig):
             ACTION: ACTION,
             "agent_pos": OBS_STATE,
             "environment_state": OBS_ENV_STATE,
-            f"pixels/{CAMERA}": f"{OBS_IMAGES}.{CAMERA}",
         }
     )
 
@@ -76,19 +80,25 @@ class CNMPSO101Env(CNMPSimConfig):
         self._check_common()
         if not self.action_scale > 0:
             raise ValueError(f"action_scale must be positive, got {self.action_scale}")
-        # the image feature follows image_obs and render_size
-        if self.image_obs:
-            self.features[f"pixels/{CAMERA}"] = PolicyFeature(
-                type=FeatureType.VISUAL, shape=(self.render_size, self.render_size, 3)
-            )
-        else:
-            self.features.pop(f"pixels/{CAMERA}", None)
+        self.cameras = check_cameras(self.cameras, self.camera_size)
+        if self.cameras:  # the policy sees the arm's state and the images; γ is ground truth for reports only
+            self.features.pop("environment_state", None)
+            self.features_map.pop("environment_state", None)
+            feats, names = camera_features(self.cameras, self.camera_size)
+            self.features.update(feats)
+            self.features_map.update(names)
+
+    @property
+    def ground_truth(self) -> dict[str, str]:
+        """Dataset feature -> the env ``info`` key the recorder stores it from (none when γ is observed)."""
+        return {GROUND_TRUTH_TASK_PARAMS: "task_params"} if self.cameras else {}
 
     @property
     def gym_kwargs(self) -> dict:
         return {
             "random_block_position": self.random_block_position,
             "action_scale": float(self.action_scale),
-            "image_obs": self.image_obs,
+            "cameras": list(self.cameras),
+            "camera_size": self.camera_size,
             **self._common_gym_kwargs(),
         }

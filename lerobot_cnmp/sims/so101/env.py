@@ -14,8 +14,10 @@ class. What this module adds:
   ``info["is_success"]`` (stock ``lerobot-eval`` reads only the latter and would count 0 %), can keep an
   episode running past success (``terminate_on_success=False``, for recording fixed-length demos; the
   plugin always terminates on success), names the task (``task`` / ``task_description``, which
-  ``lerobot-eval`` looks up in every sub-env) and can add a camera image *next to* ``environment_state``
-  (the plugin's ``image_obs=True`` replaces it).
+  ``lerobot-eval`` looks up in every sub-env) and can observe cameras of the plugin's model (``cameras``,
+  :class:`~lerobot_cnmp.sims.cameras.FastRenderer`): then ``environment_state`` (block and goal) leaves the
+  observation, as a real SO-101 dataset has none, and goes to ``info["task_params"]`` (block start and goal,
+  every reset and step) for the recorder's ground truth.
 
 The plugin (an optional extra: ``pip install -e ".[so101]"``) is imported only when an env is built, so
 importing this module, and ``lerobot_cnmp.sims``, works without it.
@@ -43,7 +45,7 @@ Facts of the plugin's PickPlace task (read from its source, v0.4.0):
 - rendering: the ``front`` camera; the SO-101 meshes have 322k faces and the scene casts shadows, so with
   software EGL (no GPU) a 128 x 128 frame takes about 0.6 to 0.9 s; the wrapper renders with shadows,
   reflections and the skybox off (~0.1 s). Pixels are off unless asked
-  (``image_obs``); ``render()`` builds its renderer on first use only.
+  (``cameras``); ``render()`` builds its renderer on first use only.
 """
 
 from __future__ import annotations
@@ -56,10 +58,13 @@ import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402
 
+from lerobot_cnmp.sims.cameras import FastRenderer, FreeView, Marker, check_cameras  # noqa: E402
 from lerobot_cnmp.sims.so101.task import (  # noqa: E402
-    CAMERA,
     DEFAULT_ACTION_SCALE,
     DEFAULT_RENDER_SIZE,
+    FREE_VIEWS,
+    GOAL_MARK_RADIUS,
+    GOAL_MARK_RGBA,
     TASK_DESCRIPTION,
     require_plugin,
 )
@@ -67,27 +72,34 @@ from lerobot_cnmp.sims.so101.task import (  # noqa: E402
 
 class SO101Wrapper(gym.Wrapper):
     """The plugin's PickPlace env with LeRobot's success key, optional termination on success, the task's
-    name, and optionally the camera image.
+    name, and optionally cameras instead of the block and goal positions.
 
     Every step's info gets ``is_success`` = the plugin's ``succeed`` (which is kept). With
     ``terminate_on_success=False`` a successful step is not terminal (the plugin's ``terminated`` on success
     is cleared; a success implies the block lies within 3 cm of a goal inside [0.15, 0.30] x [-0.1, 0.1] m,
-    so it is never also out of the workspace, the plugin's other reason to terminate). With ``image_obs``
-    the observation also holds ``pixels["front"]``, the plugin's ``render()`` (uint8, H x W x 3).
+    so it is never also out of the workspace, the plugin's other reason to terminate). With ``cameras`` (the
+    plugin model's ``front`` and our ``table`` view, ``FREE_VIEWS``; the goal drawn as a disc) the observation holds ``agent_pos`` and ``pixels[<name>]`` (uint8,
+    ``camera_size`` square) and no ``environment_state``; every info holds ``task_params``, the episode's
+    first ``environment_state`` (block start and goal), cameras or not.
     """
 
-    def __init__(self, env: gym.Env, terminate_on_success: bool = True, image_obs: bool = False):
+    def __init__(self, env: gym.Env, terminate_on_success: bool = True,
+                 cameras: list[str] | tuple[str, ...] = (), camera_size: int = DEFAULT_RENDER_SIZE):
         super().__init__(env)
         self.terminate_on_success = bool(terminate_on_success)
-        self.image_obs = bool(image_obs)
-        if self.image_obs:
-            h, w = env.unwrapped._render_specs.height, env.unwrapped._render_specs.width
-            self.observation_space = spaces.Dict(
-                {
-                    **env.observation_space.spaces,
-                    "pixels": spaces.Dict({CAMERA: spaces.Box(0, 255, (h, w, 3), dtype=np.uint8)}),
-                }
+        model = env.unwrapped.model
+        model_cameras = [model.camera(i).name for i in range(model.ncam)]
+        self.cameras = check_cameras(cameras, camera_size, model_cameras + list(FREE_VIEWS))
+        self._views = {c: c if c in model_cameras else FreeView(**FREE_VIEWS[c]) for c in self.cameras}
+        self.camera_size = int(camera_size)
+        self._cameras = FastRenderer(model, self.camera_size) if self.cameras else None
+        self.task_params = np.zeros(env.observation_space["environment_state"].shape, dtype=np.float32)
+        if self.cameras:
+            space = {k: v for k, v in env.observation_space.spaces.items() if k != "environment_state"}
+            space["pixels"] = spaces.Dict(
+                {c: spaces.Box(0, 255, (self.camera_size, self.camera_size, 3), dtype=np.uint8) for c in self.cameras}
             )
+            self.observation_space = spaces.Dict(space)
 
     @property
     def task_description(self) -> str:
@@ -116,31 +128,42 @@ class SO101Wrapper(gym.Wrapper):
         return np.asarray(frame, dtype=np.uint8).copy()
 
     def _obs(self, obs: dict) -> dict:
-        if self.image_obs:
-            obs = {**obs, "pixels": {CAMERA: self._frame()}}
+        if self.cameras:
+            obs = {k: v for k, v in obs.items() if k != "environment_state"}
+            base = self.env.unwrapped
+            goal = Marker((float(base.goal_pos[0]), float(base.goal_pos[1]), 5e-4), GOAL_MARK_RADIUS, GOAL_MARK_RGBA)
+            obs["pixels"] = {c: self._cameras(base.data, self._views[c], (goal,)) for c in self.cameras}
         return obs
 
     def reset(self, *, seed=None, options=None):
         obs, info = self.env.reset(seed=seed, options=options)
-        return self._obs(obs), {**info, "is_success": False}
+        self.task_params = np.asarray(obs["environment_state"], dtype=np.float32).copy()
+        return self._obs(obs), {**info, "is_success": False, "task_params": self.task_params.copy()}
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float64))
         success = bool(info.get("succeed", False))
         if success and not self.terminate_on_success:
             terminated = False
-        return self._obs(obs), reward, bool(terminated), bool(truncated), {**info, "is_success": success}
+        info = {**info, "is_success": success, "task_params": self.task_params.copy()}
+        return self._obs(obs), reward, bool(terminated), bool(truncated), info
 
     def render(self):
         if self.env.unwrapped.render_mode != "rgb_array":
             return None
         return self._frame()
 
+    def close(self):
+        if self._cameras is not None:
+            self._cameras.close()
+        super().close()
+
 
 def make_so101_pickplace(
     random_block_position: bool = True,
     action_scale: float = DEFAULT_ACTION_SCALE,
-    image_obs: bool = False,
+    cameras: list[str] | tuple[str, ...] = (),
+    camera_size: int = DEFAULT_RENDER_SIZE,
     render_mode: str | None = "rgb_array",
     render_size: int = DEFAULT_RENDER_SIZE,
     terminate_on_success: bool = True,
@@ -154,8 +177,8 @@ def make_so101_pickplace(
     env = pick_place_env.SO101PickPlaceGymEnv(
         render_spec=GymRenderingSpec(height=int(render_size), width=int(render_size)),
         render_mode=render_mode,
-        image_obs=False,  # its image_obs replaces environment_state; the wrapper adds the image instead
+        image_obs=False,  # the plugin's own image option (its render()); the wrapper renders the cameras
         random_block_position=bool(random_block_position),
         action_scale=float(action_scale),
     )
-    return SO101Wrapper(env, terminate_on_success=terminate_on_success, image_obs=image_obs)
+    return SO101Wrapper(env, terminate_on_success=terminate_on_success, cameras=cameras, camera_size=camera_size)

@@ -43,6 +43,7 @@ SPEC = SimSpec(
         "action": list(ACTION_NAMES),
         "agent_pos": list(AGENT_POS_NAMES),
         "environment_state": list(ENV_STATE_NAMES),
+        "task_params": list(ENV_STATE_NAMES),  # the ground truth with cameras on: the first environment_state
     },
     episode_label=_episode_label,
     config_kwargs=_record_config_kwargs,

@@ -12,7 +12,15 @@ CONTROL_FPS = 10
 DEFAULT_MAX_EPISODE_STEPS = 300  # the plugin registers SO101PickPlace-v0 with 300 steps
 DEFAULT_ACTION_SCALE = 0.025  # lerobot_env_so101.policy.DEFAULT_ACTION_SCALE, what its controllers assume
 DEFAULT_RENDER_SIZE = 128  # the plugin's GymRenderingSpec default
-CAMERA = "front"
+# the cameras a user can observe (``--env.cameras``): the plugin model's ``front`` (it looks at the arm from the
+# front; the workspace fills a small part of it) and ``table``, a view the model does not define, over the
+# workspace from in front of the robot, as a user would mount one camera (lookat m, distance m, azimuth and
+# elevation degrees of MuJoCo's free camera)
+FREE_VIEWS = {"table": {"lookat": (0.21, 0.0, 0.0), "distance": 0.42, "azimuth": 180.0, "elevation": -35.0}}
+# the goal is a position the success rule checks, not a body of the model: with cameras on it is drawn into the
+# frames as a flat disc of the success tolerance's radius (3 cm), as a mark taped on a real table
+GOAL_MARK_RADIUS = 0.03
+GOAL_MARK_RGBA = (0.1, 0.8, 0.2, 1.0)
 
 ACTION_NAMES = ["dx", "dy", "dz", "grasp"]
 ARM_JOINT_NAMES = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
