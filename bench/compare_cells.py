@@ -78,6 +78,7 @@ def metaworld_cell(task: str, name: str) -> dict:
 
 
 CAMERAS = ["corner3", "behindGripper"]  # the camera cells' views (128 x 128): the table with the goal, the gripper's
+SO101_CAMERA = "table"  # SO-101's camera cell: one 128 x 128 view over the workspace (lerobot_cnmp.sims.so101.task)
 
 
 def metaworld_camera_cell(task: str, name: str) -> dict:
@@ -109,6 +110,14 @@ TASKS = {
         "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],
         "configs": {"cnmp": "configs/cnmp_so101.json", "act": "configs/act_cpu_so101.json",
                     "diffusion": "configs/diffusion_cpu_so101.json"},
+    },
+    "cnmp_so101_cam": {  # the same task seen by one camera over the table: no block or goal positions
+        "dataset": "datasets/cnmp_so101_cam",
+        "env": ["--env.type=cnmp_so101", "--env.render_mode=null", f"--env.cameras=[{SO101_CAMERA}]"],
+        "configs": {m: f"configs/{m}{'' if m == 'cnmp' else '_cpu'}_so101_cam.json" for m in ("cnmp", "act", "diffusion")},
+        "record": (f"lerobot-cnmp-record --sim cnmp_so101 --root datasets/cnmp_so101_cam --overwrite --n_episodes 400 "
+                   f"--action_noise 0.1,0.1,0,0 --max_failed 100 --cameras {SO101_CAMERA}"),
+        "no_cells": {"promp": "the contextual ProMP conditions on γ, which the camera cells do not give"},
     },
     "cnmp_pickplace": {  # the paper's Sec. IV-B: γ = the object's position, 8 demos on a 2 x 4 grid of γ
         "dataset": "datasets/cnmp_pickplace",

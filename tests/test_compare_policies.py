@@ -379,6 +379,25 @@ def test_camera_cells_are_one_rule_and_see_no_gamma(tmp_path):
         run.run_seed("cnmp_metaworld_push_cam", "cnmp", 5, 0, out=tmp_path, schedule_for=None)
 
 
+def test_so101_camera_cell_follows_the_same_rules():
+    """SO-101 from one camera: ACT / Diffusion are the MetaWorld camera configs on its dataset; CNMP is the SO-101
+    config with the MetaWorld camera cells' image settings (no γ); the env sees the camera and no positions."""
+    same = ("dataset", "job_name")
+    so101, push = cells.TASKS["cnmp_so101_cam"], cells.TASKS["cnmp_metaworld_push_cam"]
+    for method in ("act", "diffusion"):
+        a, b = (json.loads((cells.REPO / t["configs"][method]).read_text()) for t in (push, so101))
+        assert {k: v for k, v in a.items() if k not in same} == {k: v for k, v in b.items() if k not in same}
+        assert b["dataset"]["root"] == so101["dataset"]
+    cam, state = (json.loads((cells.REPO / p).read_text()) for p in (so101["configs"]["cnmp"], "configs/cnmp_so101.json"))
+    image_keys = ("use_images", "image_encoder")
+    assert {k: v for k, v in cam["policy"].items() if k not in image_keys} == state["policy"]
+    push_cnmp = json.loads((cells.REPO / push["configs"]["cnmp"]).read_text())["policy"]
+    assert {k: cam["policy"][k] for k in image_keys} == {k: push_cnmp[k] for k in image_keys}
+    env = cells.env_config("cnmp_so101_cam")
+    assert env.cameras == [cells.SO101_CAMERA] and "environment_state" not in env.features
+    assert f"--cameras {cells.SO101_CAMERA}" in so101["record"] and "promp" in so101["no_cells"]
+
+
 def test_env_config_parses_the_eval_arguments_as_lerobot_eval_does():
     """The latency step's EnvConfig comes from the same --env.* arguments, lists and nulls included."""
     cam = cells.env_config("cnmp_metaworld_push_cam")
