@@ -10,6 +10,7 @@ times add up across the attempts (each attempt's progress bar starts at its resu
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 import os
 import re
@@ -135,16 +136,26 @@ def steady_rate(log: Path, skip: float = 0.25) -> float | None:
     return (pts[-1][0] - pts[0][0]) / (pts[-1][1] - pts[0][1])
 
 
+def config_digest(task: str, method: str) -> str:
+    """sha256 of what sets a cell's training speed: its config file's bytes and the variant's extra arguments."""
+    h = hashlib.sha256((REPO / config_of(task, method)).read_bytes())
+    h.update(json.dumps(VARIANTS.get(method, (None, []))[1]).encode())
+    return h.hexdigest()
+
+
 def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root: Path | None, env: dict,
               min_loop_s: float = PROBE_MIN_LOOP_S) -> dict:
     """The training loop's steady steps/s of a (task, method) on this machine: a probe ``lerobot-train`` of the
     cell (first try PROBE_STEPS, longer until its loop takes >= ``min_loop_s``), its rate after the warm-up
     (:func:`steady_rate`), cached in ``<out>/rates.json``. A short probe's rate would include the warm-up and
-    under-count the steps a method runs in its cap: its training would end before the cap."""
+    under-count the steps a method runs in its cap: its training would end before the cap. A cached rate is
+    reused only while the cell's config file and variant arguments are those it was measured with
+    (``config_sha256``): a changed config (e.g. a larger camera input) is probed again."""
     cache = out / "rates.json"
     rates = json.loads(cache.read_text()) if cache.is_file() else {}
     key = f"{task}/{method}"
-    if key in rates:
+    digest = config_digest(task, method)
+    if key in rates and rates[key].get("config_sha256") == digest:
         return rates[key]
     probe_steps = PROBE_STEPS[method]
     for _ in range(3):
@@ -166,7 +177,7 @@ def step_rate(task: str, method: str, n: int, seed: int, out: Path, dataset_root
     shutil.rmtree(probe_dir, ignore_errors=True)
     rates[key] = {"steps_per_s": round(rate, 3), "probe_steps": probe_steps, "probe_loop_s": loop,
                   "mean_steps_per_s": round(probe_steps / loop, 3), "probe_command": shlex.join(cmd), "n_demos": n,
-                  "host_cpus": os.cpu_count(), "provenance": run_provenance()}
+                  "host_cpus": os.cpu_count(), "config_sha256": digest, "provenance": run_provenance()}
     # another run sharing ``out`` may have added its rates since this one read the file: merge, then replace
     merged = json.loads(cache.read_text()) if cache.is_file() else {}
     merged[key] = rates[key]

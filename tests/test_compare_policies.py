@@ -114,6 +114,16 @@ def fake(monkeypatch):
     return clis
 
 
+def test_a_cached_rate_is_reused_only_for_the_same_config(tmp_path, fake, monkeypatch):
+    args = ("cnmp_obstacle2d", "cnmp", 5, 1000, tmp_path, None, {})
+    first = run.step_rate(*args)
+    assert first["config_sha256"] == run.config_digest("cnmp_obstacle2d", "cnmp") and len(fake.commands) == 1
+    assert run.step_rate(*args) == first and len(fake.commands) == 1  # cached
+    assert run.config_digest("cnmp_obstacle2d", "cnmp_noterm") != first["config_sha256"]  # variant args count
+    monkeypatch.setattr(run, "config_digest", lambda task, method: "another config")
+    assert run.step_rate(*args)["config_sha256"] == "another config" and len(fake.commands) == 2  # probed again
+
+
 def test_curves_seeds_and_the_report_from_fake_eval_files(tmp_path, fake):
     assert cp.main([*ARGS, "--out", str(tmp_path)]) == 0
     rates = json.loads((tmp_path / "rates.json").read_text())["cnmp_obstacle2d/cnmp"]
