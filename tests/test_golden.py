@@ -1,5 +1,5 @@
-"""Checkpoints recorded before the package's redesign (tests/golden, made by tests/golden/make_golden.py)
-load with today's code and act identically on their fixed observation sequence: every committed
+"""Checkpoints recorded before the package's redesign, and for configs added since when they were added
+(tests/golden, made by tests/golden/make_golden.py), load with today's code and act identically on their fixed observation sequence: every committed
 training config (configs/cnmp_*.json), the mixture and the image-conditioned one included.
 
 "Identically" is up to float rounding: a BLAS kernel's summation order depends on the CPU it runs on (the

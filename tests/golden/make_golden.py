@@ -9,6 +9,10 @@ episode) in actions.npz. The test reloads each checkpoint with the current code 
 (up to float rounding: see tests/test_golden.py).
 
     python tests/golden/make_golden.py            # all configs
+    python tests/golden/make_golden.py cnmp_so101_cam --root /tmp/so101_cam_small
+                                                  # one config, on a small recording of its dataset's kind (its
+                                                  # dataset is not committed; the test then skips the replay of
+                                                  # training, whose episode count differs from the config's dataset)
 """
 
 from __future__ import annotations
@@ -68,9 +72,9 @@ def _train_steps(policy, n_episodes: int) -> list[float]:
     return losses
 
 
-def record(name: str) -> None:
+def record(name: str, root: Path | None = None) -> None:
     raw = json.loads((REPO / "configs" / f"{name}.json").read_text())
-    root = REPO / raw["dataset"]["root"]
+    root = root or REPO / raw["dataset"]["root"]
     if not (root / "meta" / "info.json").is_file():
         print(f"skip {name}: {root} not committed")
         return
@@ -107,6 +111,14 @@ def record(name: str) -> None:
 
 
 if __name__ == "__main__":
-    names = sys.argv[1:] or sorted(p.stem for p in (REPO / "configs").glob("cnmp_*.json"))
+    args = sys.argv[1:]
+    root = None
+    if "--root" in args:
+        i = args.index("--root")
+        if i + 1 >= len(args) or len(args) != 3:
+            sys.exit("usage: make_golden.py [CONFIG ...] | CONFIG --root DATASET_ROOT")
+        root = Path(args[i + 1])
+        del args[i:i + 2]
+    names = args or sorted(p.stem for p in (REPO / "configs").glob("cnmp_*.json"))
     for n in names:
-        record(n)
+        record(n, root)
