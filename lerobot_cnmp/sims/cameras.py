@@ -28,6 +28,23 @@ def camera_features(cameras: list[str], size: int) -> tuple[dict[str, PolicyFeat
     return feats, {f"pixels/{c}": f"{OBS_IMAGES}.{c}" for c in cameras}
 
 
+def cameras_replace_task_params(features: dict, features_map: dict, cameras: list[str], size: int) -> None:
+    """With ``cameras`` on, the env's features lose ``environment_state`` (γ: ground truth for reports only) and gain
+    the cameras' (``pixels/<cam>`` -> ``observation.images.<cam>``); nothing changes without cameras."""
+    if not cameras:
+        return
+    features.pop("environment_state", None)
+    features_map.pop("environment_state", None)
+    feats, names = camera_features(cameras, size)
+    features.update(feats)
+    features_map.update(names)
+
+
+def ground_truth_features(cameras: list[str]) -> dict[str, str]:
+    """Dataset feature -> the env ``info`` key the recorder stores it from: γ when cameras replace it, else none."""
+    return {GROUND_TRUTH_TASK_PARAMS: "task_params"} if cameras else {}
+
+
 def check_cameras(cameras, size: int, available: list[str] | None = None) -> list[str]:
     """``cameras`` as a list of distinct names (each in ``available`` when given) and ``size`` in pixels."""
     if isinstance(cameras, str):

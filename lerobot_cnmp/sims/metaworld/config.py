@@ -12,7 +12,7 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
-from lerobot_cnmp.sims.cameras import GROUND_TRUTH_TASK_PARAMS, camera_features, check_cameras
+from lerobot_cnmp.sims.cameras import cameras_replace_task_params, check_cameras, ground_truth_features
 from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
 from lerobot_cnmp.sims.metaworld.task import CONTROL_FPS, MAX_PATH_LENGTH, check_task
 
@@ -65,17 +65,12 @@ class CNMPMetaWorldEnv(CNMPSimConfig):
                              f"got {self.episode_length}")
         self._check_common()
         self.cameras = check_cameras(self.cameras, self.camera_size)
-        if self.cameras:  # the policy sees the hand state and the images; γ is ground truth for reports only
-            self.features.pop("environment_state", None)
-            self.features_map.pop("environment_state", None)
-            feats, names = camera_features(self.cameras, self.camera_size)
-            self.features.update(feats)
-            self.features_map.update(names)
+        cameras_replace_task_params(self.features, self.features_map, self.cameras, self.camera_size)
 
     @property
     def ground_truth(self) -> dict[str, str]:
         """Dataset feature -> the env ``info`` key the recorder stores it from (none when γ is observed)."""
-        return {GROUND_TRUTH_TASK_PARAMS: "task_params"} if self.cameras else {}
+        return ground_truth_features(self.cameras)
 
     @property
     def gym_id(self) -> str:

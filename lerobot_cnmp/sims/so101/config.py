@@ -10,7 +10,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_cnmp.sims.cameras import GROUND_TRUTH_TASK_PARAMS, camera_features, check_cameras
+from lerobot_cnmp.sims.cameras import cameras_replace_task_params, check_cameras, ground_truth_features
 from lerobot_cnmp.sims.config import CNMPSimConfig, register_gym_id
 from lerobot_cnmp.sims.so101.task import (
     ACTION_NAMES,
@@ -43,10 +43,10 @@ class CNMPSO101Env(CNMPSimConfig):
             plugin's fixed block (0.25, 0) and goal (0.20, 0.08).
         action_scale: metres per unit of ``dx, dy, dz`` (0.025, the plugin's controllers' scale; the
             plugin's own default is 1.0).
-        cameras: names of the plugin model's cameras (``front``, ``wrist_cam``) observed as
-            ``observation.images.<name>``. Non-empty: the block and goal positions are NOT given to the policy
-            (no ``environment_state``, as in a real SO-101 dataset); the recorder stores them (block start and
-            goal) as ``ground_truth.task_params`` for reports.
+        cameras: cameras observed as ``observation.images.<name>``: ``table`` (a view over the workspace that
+            the plugin's model lacks) and ``front`` (the model's own). Non-empty: the block and goal positions
+            are NOT given to the policy (no ``environment_state``, as in a real SO-101 dataset); the recorder
+            stores them (block start and goal) as ``ground_truth.task_params`` for reports.
         camera_size: side of each camera image, pixels (shadows, reflections and skybox off: ~0.1 s a frame
             with software EGL, no GPU; see :mod:`lerobot_cnmp.sims.so101.env`).
         render_mode, render_size, terminate_on_success: see :class:`CNMPSimConfig`.
@@ -81,17 +81,12 @@ class CNMPSO101Env(CNMPSimConfig):
         if not self.action_scale > 0:
             raise ValueError(f"action_scale must be positive, got {self.action_scale}")
         self.cameras = check_cameras(self.cameras, self.camera_size)
-        if self.cameras:  # the policy sees the arm's state and the images; γ is ground truth for reports only
-            self.features.pop("environment_state", None)
-            self.features_map.pop("environment_state", None)
-            feats, names = camera_features(self.cameras, self.camera_size)
-            self.features.update(feats)
-            self.features_map.update(names)
+        cameras_replace_task_params(self.features, self.features_map, self.cameras, self.camera_size)
 
     @property
     def ground_truth(self) -> dict[str, str]:
         """Dataset feature -> the env ``info`` key the recorder stores it from (none when γ is observed)."""
-        return {GROUND_TRUTH_TASK_PARAMS: "task_params"} if self.cameras else {}
+        return ground_truth_features(self.cameras)
 
     @property
     def gym_kwargs(self) -> dict:
