@@ -1,6 +1,7 @@
 """Checkpoints recorded before the package's redesign, and for configs added since when they were added
-(tests/golden, made by tests/golden/make_golden.py), load with today's code and act identically on their fixed observation sequence: every committed
-training config (configs/cnmp_*.json), the mixture and the image-conditioned one included.
+(tests/golden, made by tests/golden/make_golden.py), load with today's code and act identically on their fixed
+observation sequence: every committed training config (configs/cnmp_*.json), the mixture and the
+image-conditioned one included.
 
 "Identically" is up to float rounding: a BLAS kernel's summation order depends on the CPU it runs on (the
 goldens were recorded on one machine, CI runs on another), which moves the last bit of a float32 (relative

@@ -17,9 +17,9 @@ episode) in actions.npz. The test reloads each checkpoint with the current code 
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -76,7 +76,7 @@ def record(name: str, root: Path | None = None) -> None:
     raw = json.loads((REPO / "configs" / f"{name}.json").read_text())
     root = root or REPO / raw["dataset"]["root"]
     if not (root / "meta" / "info.json").is_file():
-        print(f"skip {name}: {root} not committed")
+        print(f"skip {name}: no dataset at {root}")
         return
     pol = dict(raw["policy"])
     pol.pop("type")
@@ -111,14 +111,11 @@ def record(name: str, root: Path | None = None) -> None:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    root = None
-    if "--root" in args:
-        i = args.index("--root")
-        if i + 1 >= len(args) or len(args) != 3:
-            sys.exit("usage: make_golden.py [CONFIG ...] | CONFIG --root DATASET_ROOT")
-        root = Path(args[i + 1])
-        del args[i:i + 2]
-    names = args or sorted(p.stem for p in (REPO / "configs").glob("cnmp_*.json"))
-    for n in names:
-        record(n, root)
+    parser = argparse.ArgumentParser(description="Record the golden checkpoints of tests/test_golden.py.")
+    parser.add_argument("configs", nargs="*", help="config names (configs/<name>.json); default: every cnmp_* config")
+    parser.add_argument("--root", type=Path, help="record one config on this dataset instead of its own")
+    args = parser.parse_args()
+    if args.root is not None and len(args.configs) != 1:
+        parser.error("--root records one config: name exactly one")
+    for n in args.configs or sorted(p.stem for p in (REPO / "configs").glob("cnmp_*.json")):
+        record(n, args.root)
