@@ -32,22 +32,23 @@ CURVE_SEED = 200000  # the curve's evaluations: 20 episodes per checkpoint, seed
 CURVE_EPISODES = 20
 HELDOUT_EPISODES = 50
 
-METHODS = ("cnmp", "act", "diffusion", "promp", "cnmp_noterm")
+METHODS = ("cnmp", "act", "diffusion", "promp", "cnmp_noterm", "cnmp_term")
 STOCK = ("cnmp", "act", "diffusion")  # trained by lerobot-train, evaluated by lerobot-eval
 # ablations: a method's config with extra lerobot-train arguments, a cell of its own (not run unless named)
-VARIANTS = {"cnmp_noterm": ("cnmp", ["--policy.linear_task_term=false"])}  # CNMP without the linear γ term
+VARIANTS = {"cnmp_noterm": ("cnmp", ["--policy.linear_task_term=false"]),  # CNMP without the linear γ term
+            "cnmp_term": ("cnmp", ["--policy.linear_task_term=true"])}  # with it where a config pins it off
 MARKS_S = (30, 60, 120, 300, 600, 1200, 1800)  # training-loop seconds at which a checkpoint is kept
 # training-loop cap per method (s): CNMP's curves flatten within a few minutes, ACT / Diffusion get 30 min
-CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800, "cnmp_noterm": 600}
+CAP_S = {"cnmp": 600, "act": 1800, "diffusion": 1800, "cnmp_noterm": 600, "cnmp_term": 600}
 # training seeds per method: CNMP is cheap (3); ACT / Diffusion cost 30 min a seed (1); ProMP's fit is closed
 # form and deterministic on the fixed N episodes (no seed enters it), so a second seed would repeat the first
-N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1, "cnmp_noterm": 3}
+N_SEEDS = {"cnmp": 3, "act": 1, "diffusion": 1, "promp": 1, "cnmp_noterm": 3, "cnmp_term": 3}
 # methods whose LeRobot preset has no learning-rate schedule (ACT: get_scheduler_preset() is None): a run the
 # probe under-counted is extended to the cap by resuming with more steps, the same run as a longer one
 CONSTANT_LR = {"act"}
 EXTEND_BELOW = 0.85  # ... when it used less than this share of its cap
 FIRST_SEED = 1000  # the committed configs' seed; seed i of a cell is FIRST_SEED + i
-PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150, "cnmp_noterm": 3000}  # the rate probe's first try (~40 s on one CPU core)
+PROBE_STEPS = {"cnmp": 3000, "act": 250, "diffusion": 150, "cnmp_noterm": 3000, "cnmp_term": 3000}  # the rate probe's first try (~40 s on one CPU core)
 PROBE_MIN_LOOP_S = 30  # a shorter probe is redone longer: its rate is taken after the warm-up (compare_run.steady_rate)
 PROMP_NOTE = ("ProMP: fitted in closed form (EM of movement_primitives) on the fixed first N episodes, deterministic: no "
               "training seed enters the fit: one fit per cell, its curve one point (the fit's seconds), its "
@@ -57,7 +58,8 @@ PROMP_LABEL = ("open loop: movement_primitives' ProMP (31 RBFs per action dim, l
                "fitted in closed form on the first N demos' actions by lerobot-cnmp-fit-promp, saved as a LeRobot "
                "policy (--policy.type=promp) and evaluated by the same lerobot-eval; at each episode's first step "
                "it is conditioned on the episode's conditions (observation.environment_state) or, on a task with "
-               "γ, on γ (a contextual ProMP: the weights' Gaussian conditioned on γ), and its mean action "
+               "γ, on γ (a contextual ProMP: the weights' Gaussian conditioned on γ; on SO-101 γ is the env's "
+               "observation.environment_state, its block and goal positions), and its mean action "
                "trajectory is commanded on the demos' schedule (step k -> phase k/(T-1), T the demos' median "
                "length, then the last action), whatever the robot senses")
 RENAME_ENV_STATE = {"observation.task_params": "observation.environment_state"}
@@ -110,6 +112,7 @@ TASKS = {
         "env": ["--env.type=cnmp_so101", "--env.render_mode=null"],
         "configs": {"cnmp": "configs/cnmp_so101.json", "act": "configs/act_cpu_so101.json",
                     "diffusion": "configs/diffusion_cpu_so101.json"},
+        "promp": "environment_state",  # a contextual ProMP on γ, here the env's block and goal positions
     },
     "cnmp_so101_cam": {  # the same task seen by one camera over the table: no block or goal positions
         "dataset": "datasets/cnmp_so101_cam",

@@ -336,9 +336,16 @@ def test_a_tasks_episode_order(tmp_path):
             assert sorted(task["episode_order"]) == list(range(total)), name
 
 
-def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path):
+def test_promp_cell_where_it_cannot_condition_is_an_error(tmp_path, monkeypatch):
+    bare = {k: v for k, v in cells.TASKS["cnmp_so101"].items() if k != "promp"}  # a task with nothing to condition on
+    monkeypatch.setitem(cells.TASKS, "cnmp_so101", bare)
     with pytest.raises(cells.CellError, match="ProMP is not set up"):
         run.run_seed("cnmp_so101", "promp", 5, 0, out=tmp_path, schedule_for=None)
+
+
+def test_so101_promp_is_contextual_on_the_environment_state():
+    assert cells.TASKS["cnmp_so101"]["promp"] == "environment_state"
+    assert "--conditioning=environment_state" in cells.fit_command("cnmp_so101", 10, Path("/tmp/x"))
 
 
 def test_train_loop_time_from_the_log(tmp_path):

@@ -21,6 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 PICKPLACE = REPO / "datasets" / "cnmp_pickplace"
 OBSTACLE = REPO / "datasets" / "cnmp_obstacle2d"
+SO101 = REPO / "datasets" / "cnmp_so101"  # γ (block and goal positions) is its observation.environment_state
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +87,23 @@ def test_conditions_mode_passes_through_the_environment_state_points():
     chunk = policy.predict_action_chunk({"observation.environment_state": torch.from_numpy(env_state)[None]})
     k = round(0.5 * (info["schedule_steps"] - 1))
     np.testing.assert_allclose(chunk[0, k].numpy(), np.asarray(via.values), atol=5e-3)
+
+
+def test_environment_state_mode_is_the_contextual_promp_on_the_env_state():
+    policy, info = fit(SO101, list(range(6)), "environment_state")
+    data = load_demos(SO101)
+    ref = ProMPBaseline().fit(data["demos"][:6], task_params=data["env_state"][:6])
+    assert set(policy.config.input_features) == {"observation.state", "observation.environment_state"}
+    assert policy.config.context_key == "observation.environment_state" and policy.config.contextual
+    gammas = data["env_state"][[0, 3]].astype(np.float32)
+    phases = np.linspace(0, 1, info["schedule_steps"])
+    want = np.stack([ref.predict(phases, [], task_params=g)[0] for g in gammas])
+    policy.reset()
+    chunk = policy.predict_action_chunk({"observation.environment_state": torch.from_numpy(gammas)})
+    np.testing.assert_allclose(chunk.numpy(), want, rtol=1e-4, atol=1e-4)
+    assert not np.allclose(want[0], want[1], atol=1e-2)  # γ moves the plan
+    with pytest.raises(SystemExit, match="has no observation.environment_state"):
+        fit(PICKPLACE, [0, 1], "environment_state")
 
 
 def test_it_is_not_trained_by_gradient_steps(pickplace_policy):

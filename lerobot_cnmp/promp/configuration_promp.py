@@ -3,7 +3,8 @@
 A ProMP (Paraschos et al. 2013; ``movement_primitives.promp``) over a dataset's ``action`` trajectories,
 fitted in closed form by ``lerobot-cnmp-fit-promp`` (the library's EM; no gradient steps, so not by
 ``lerobot-train``) and executed open loop: at an episode's first step it is conditioned on the episode's γ
-(a contextual ProMP) and/or on the conditions of ``observation.environment_state``, and its mean action
+(a contextual ProMP; γ read from ``observation.task_params`` or, on an env that gives its task parameters as
+its state, ``observation.environment_state``) or on the conditions of ``observation.environment_state``, and its mean action
 trajectory is then commanded on the demos' schedule, whatever the robot senses.
 """
 
@@ -13,11 +14,14 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig
+from lerobot.utils.constants import OBS_ENV_STATE
 
 from lerobot_cnmp.data.sm_spec import TASK_PARAMS
 from lerobot_cnmp.policy.configuration_cnmp import identity_normalization
 
-PROMP_CONDITIONING = ("none", "task_params", "conditions")
+PROMP_CONDITIONING = ("none", "task_params", "environment_state", "conditions")
+# the contextual modes and the observation key each reads γ from
+CONTEXT_KEYS = {"task_params": TASK_PARAMS, "environment_state": OBS_ENV_STATE}
 
 
 @PreTrainedConfig.register_subclass("promp")
@@ -28,7 +32,9 @@ class ProMPConfig(PreTrainedConfig):
     Args:
         conditioning: What the plan is conditioned on at an episode's first step. ``task_params``: the
             episode's γ (``observation.task_params``), through the joint Gaussian of the demos' weights and γ
-            (``ProMPBaseline``'s contextual ProMP). ``conditions``: the SM points of
+            (``ProMPBaseline``'s contextual ProMP). ``environment_state``: the same contextual ProMP with γ read
+            from ``observation.environment_state`` (an env whose state is its task parameters, e.g. SO-101's
+            block and goal positions). ``conditions``: the SM points of
             ``observation.environment_state`` in the CNMP condition layout (Gaussian conditioning of the
             weights). ``none``: the demos' mean.
         n_weights_per_dim: RBF weights per action dim (the paper's comparison used 31).
@@ -63,9 +69,19 @@ class ProMPConfig(PreTrainedConfig):
                              f"{self.context_ridge}")
         if min(self.schedule_steps, self.action_dim, self.task_dim) < 0:
             raise ValueError("schedule_steps, action_dim and task_dim must be >= 0")
-        if self.conditioning == "task_params" and self.action_dim and not self.task_dim:
-            raise ValueError("conditioning='task_params' needs task_dim > 0 (the fit sets it from the dataset's "
-                             f"{TASK_PARAMS!r})")
+        if self.contextual and self.action_dim and not self.task_dim:
+            raise ValueError(f"conditioning={self.conditioning!r} needs task_dim > 0 (the fit sets it from the "
+                             f"dataset's {self.context_key!r})")
+
+    @property
+    def contextual(self) -> bool:
+        """Whether the plan is the weights' Gaussian conditioned on γ (a contextual ProMP)."""
+        return self.conditioning in CONTEXT_KEYS
+
+    @property
+    def context_key(self) -> str | None:
+        """The observation key γ is read from (None for ``conditions`` / ``none``)."""
+        return CONTEXT_KEYS.get(self.conditioning)
 
     @property
     def n_weights(self) -> int:

@@ -43,9 +43,8 @@ def fit(dataset_root: str | Path, episodes: list[int] | None, conditioning: str,
     from lerobot.utils.constants import OBS_ENV_STATE
 
     from lerobot_cnmp.data.demos import load_demos
-    from lerobot_cnmp.data.sm_spec import TASK_PARAMS
     from lerobot_cnmp.promp.baselines import ProMPBaseline
-    from lerobot_cnmp.promp.configuration_promp import PROMP_CONDITIONING, ProMPConfig
+    from lerobot_cnmp.promp.configuration_promp import CONTEXT_KEYS, PROMP_CONDITIONING, ProMPConfig
     from lerobot_cnmp.promp.modeling_promp import ProMPPolicy
 
     if conditioning not in PROMP_CONDITIONING:
@@ -61,13 +60,13 @@ def fit(dataset_root: str | Path, episodes: list[int] | None, conditioning: str,
     rows = [known.index(e) for e in eps]
     demos = [data["demos"][i] for i in rows]
     gamma = None
-    if conditioning == "task_params":
-        if data["task_params"] is None:
-            raise SystemExit(f"--conditioning task_params: {dataset_root} has no observation.task_params (γ); use "
-                             "--conditioning conditions or none")
-        gamma = data["task_params"][rows]
-    if conditioning == "conditions" and data["env_state"] is None:
-        raise SystemExit(f"--conditioning conditions: {dataset_root} has no observation.environment_state")
+    if conditioning == "task_params" and data["task_params"] is None:
+        raise SystemExit(f"--conditioning task_params: {dataset_root} has no observation.task_params (γ); use "
+                         "--conditioning environment_state, conditions or none")
+    if conditioning in ("environment_state", "conditions") and data["env_state"] is None:
+        raise SystemExit(f"--conditioning {conditioning}: {dataset_root} has no observation.environment_state")
+    if conditioning in CONTEXT_KEYS:  # γ: the task parameters, or the environment state read as them
+        gamma = data["task_params" if conditioning == "task_params" else "env_state"][rows]
     t0 = time.perf_counter()
     baseline = ProMPBaseline(n_weights_per_dim=n_weights_per_dim).fit(demos, task_params=gamma)
     fit_s = time.perf_counter() - t0
@@ -75,7 +74,7 @@ def fit(dataset_root: str | Path, episodes: list[int] | None, conditioning: str,
     d = demos[0].shape[1]
     inputs = {"observation.state": PolicyFeature(type=FeatureType.STATE, shape=(d,))}
     if gamma is not None:
-        inputs[TASK_PARAMS] = PolicyFeature(type=FeatureType.ENV, shape=(gamma.shape[1],))
+        inputs[CONTEXT_KEYS[conditioning]] = PolicyFeature(type=FeatureType.ENV, shape=(gamma.shape[1],))
     if conditioning == "conditions":
         inputs[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(data["env_state"].shape[1],))
     config = ProMPConfig(conditioning=conditioning, n_weights_per_dim=n_weights_per_dim, schedule_steps=steps,
@@ -92,8 +91,9 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dataset_root", required=True, help="a local LeRobotDataset folder")
     p.add_argument("--episodes", default=None, help="comma-separated episode indices (default: all)")
-    p.add_argument("--conditioning", default="task_params", help="task_params (γ), conditions "
-                   "(observation.environment_state's SM points) or none")
+    p.add_argument("--conditioning", default="task_params", help="task_params (γ), "
+                   "environment_state (observation.environment_state as γ), conditions (observation."
+                   "environment_state's SM points) or none")
     p.add_argument("--n_weights_per_dim", type=int, default=31)
     p.add_argument("--schedule_steps", type=int, default=None, help="default: the demos' median length")
     p.add_argument("--output_dir", required=True)

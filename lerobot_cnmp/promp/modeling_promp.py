@@ -16,7 +16,6 @@ from torch import Tensor
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE
 
-from lerobot_cnmp.data.sm_spec import TASK_PARAMS
 from lerobot_cnmp.policy.checkpoint import check_weights_file
 from lerobot_cnmp.promp.configuration_promp import ProMPConfig
 
@@ -36,7 +35,7 @@ class ProMPPolicy(PreTrainedPolicy):
         n, g = config.n_weights, config.task_dim
         self.register_buffer("weight_mean", torch.zeros(n, dtype=torch.float64))
         self.register_buffer("weight_cov", torch.eye(n, dtype=torch.float64))
-        if config.conditioning == "task_params":
+        if config.contextual:
             self.register_buffer("context_mu_g", torch.zeros(g, dtype=torch.float64))
             self.register_buffer("context_sd_g", torch.ones(g, dtype=torch.float64))
             self.register_buffer("context_mu_w", torch.zeros(n, dtype=torch.float64))
@@ -95,7 +94,7 @@ class ProMPPolicy(PreTrainedPolicy):
 
         c = self.config
         phases = np.linspace(0.0, 1.0, c.schedule_steps)
-        key = TASK_PARAMS if c.conditioning == "task_params" else OBS_ENV_STATE
+        key = c.context_key or OBS_ENV_STATE
         if c.conditioning != "none" and key not in batch:
             raise KeyError(f"this ProMP is conditioned on {key!r} (conditioning={c.conditioning!r}) but the "
                            f"observation has only {sorted(batch)}")
@@ -106,7 +105,7 @@ class ProMPPolicy(PreTrainedPolicy):
         else:
             x = batch[key].detach().cpu().numpy().astype(np.float64)
             x = x.reshape(-1, x.shape[-1])
-            if c.conditioning == "task_params":
+            if c.contextual:
                 plans = [self.baseline().predict(phases, [], task_params=row)[0] for row in x]
             else:
                 plans = [self.baseline().predict(phases, conditions_from_vector(row, c.action_dim))[0] for row in x]
