@@ -3,12 +3,13 @@
     python -m bench.so101_failures [--checkpoint CKPT | --train] [--episodes 50] [--seed 100000]
 
 Runs a CNMP checkpoint (or a contextual ProMP one, ``lerobot-cnmp-fit-promp``) on ``cnmp/SO101PickPlace-v0``
-(the third-party plugin's env behind ``--env.type=cnmp_so101``; extra ``so101``) one episode at a time, reset seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them,
-each observation through the policy's processors as ``lerobot-eval`` does. Per episode it records the step at
-which the policy first commands the jaw closed (``grasp`` < 0.5) and, at that step, the end effector's offset
-from the block centre (``agent_pos`` dims 11-13 minus the block's position in ``environment_state``), the
-block's highest lift and whether the episode succeeded. The same offsets in the dataset's demos (their
-first closing frame) are the reference: the plugin's controller closes at one offset, to about a millimetre.
+(the third-party plugin's env behind ``--env.type=cnmp_so101``; extra ``so101``) one episode at a time, reset
+seeds ``--seed`` + i as ``lerobot-eval --seed`` draws them, each observation through the policy's processors as
+``lerobot-eval`` does. Per episode it records the step at which the policy first commands the jaw closed
+(``grasp`` < 0.5) and, at that step, the end effector's offset from the block centre (``agent_pos`` dims 11-13
+minus the block's position in ``environment_state``), the block's highest lift and whether the episode
+succeeded. The same offsets in the dataset's demos (their first closing frame) are the reference: the plugin's
+controller closes at one offset, to about a millimetre.
 
 Classes of a failure: ``closed high`` (the jaw closed more than 2 cm above the block centre, the demos close
 at ~1.3 cm, and the block was never lifted), ``dropped`` (lifted, not placed), ``other``. Last line: one JSON
