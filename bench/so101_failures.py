@@ -12,8 +12,9 @@ succeeded. The same offsets in the dataset's demos (their first closing frame) a
 controller closes at one offset, to about a millimetre.
 
 Classes of a failure: ``closed high`` (the jaw closed more than 2 cm above the block centre, the demos close
-at ~1.3 cm, and the block was never lifted), ``dropped`` (lifted, not placed), ``other``. Last line: one JSON
-object (``checkpoint`` names the checkpoint).
+at ~1.3 cm, and the block was never lifted), ``dropped`` (lifted, not placed), ``other``. Per episode also the
+step at which the jaw reopens and the block's horizontal distance from the goal then (the demos' for reference:
+a drop far from the goal is an early release). Last line: one JSON object (``checkpoint`` names the checkpoint).
 """
 
 from __future__ import annotations
@@ -50,6 +51,22 @@ def demo_offsets(root: Path) -> np.ndarray:
     return np.array(out, dtype=float)
 
 
+def demo_releases(root: Path) -> np.ndarray:
+    """[episodes, 2]: each demo's step at which the jaw reopens after its first closing, and the block's horizontal
+    distance (m) from the goal at that step."""
+    df = read_frames(root)
+    out = []
+    for _, g in df.groupby("episode_index"):
+        act, env = np.stack(g["action"].values), np.stack(g["observation.environment_state"].values)
+        closed = np.flatnonzero(act[:, GRASP] < 0.5)
+        if closed.size:
+            reopened = np.flatnonzero(act[closed[0]:, GRASP] >= 0.5)
+            if reopened.size:
+                k = int(closed[0] + reopened[0])
+                out.append((k, float(np.linalg.norm(env[k, :2] - env[k, 3:5]))))
+    return np.array(out, dtype=float)
+
+
 def run_episode(policy, pre, post, env, seed: int) -> dict:
     import torch
 
@@ -57,12 +74,17 @@ def run_episode(policy, pre, post, env, seed: int) -> dict:
     policy.reset()
     z0 = float(obs["environment_state"][2])
     close_step, offset, lift, success = None, None, 0.0, False
+    open_step, open_dist = None, None
     for k in range(MAX_STEPS):
         batch = policy_batch(pre, obs)
         with torch.no_grad():
             action = post(policy.select_action(batch))[0].numpy()
         if close_step is None and action[GRASP] < 0.5:
             close_step, offset = k, (obs["agent_pos"][EE] - obs["environment_state"][:3]).astype(float)
+        elif close_step is not None and open_step is None and action[GRASP] >= 0.5:
+            # the jaw reopens: where the block is then, horizontally, from the goal
+            open_step = k
+            open_dist = float(np.linalg.norm(obs["environment_state"][:2] - obs["environment_state"][3:5]))
         obs, _, term, trunc, info = env.step(action.astype(np.float32))
         lift = max(lift, float(obs["environment_state"][2]) - z0)
         success |= bool(info.get("is_success"))
@@ -77,7 +99,8 @@ def run_episode(policy, pre, post, env, seed: int) -> dict:
     else:
         kind = "other"
     return {"seed": seed, "kind": kind, "close_step": close_step, "lift_m": round(lift, 4),
-            "offset_m": None if offset is None else np.round(offset, 4).tolist()}
+            "offset_m": None if offset is None else np.round(offset, 4).tolist(), "open_step": open_step,
+            "open_goal_dist_m": None if open_dist is None else round(open_dist, 4)}
 
 
 def load_policy(args):
@@ -135,6 +158,15 @@ def main() -> dict:
           f"dropped {kinds['dropped']}, other {kinds['other']}; mean offset at closing: successes "
           f"{res['offset_mean_success_m']}, closed high {res['offset_mean_closed_high_m']} (demos "
           f"{res['demo_offset_mean_m']})")
+    releases = demo_releases(DATASET)
+    res["demo_open_step_mean"] = round(float(releases[:, 0].mean()), 1)
+    res["demo_open_goal_dist_m_max"] = round(float(releases[:, 1].max()), 4)
+    for kind in ("success", "dropped"):
+        dists = [r["open_goal_dist_m"] for r in runs if r["kind"] == kind and r["open_goal_dist_m"] is not None]
+        res[f"open_goal_dist_m_mean_{kind}"] = round(float(np.mean(dists)), 4) if dists else None
+    print(f"jaw reopened with the block from the goal (m, mean): successes {res['open_goal_dist_m_mean_success']}, "
+          f"dropped {res['open_goal_dist_m_mean_dropped']} (demos: at most {res['demo_open_goal_dist_m_max']}, "
+          f"step {res['demo_open_step_mean']} on average)")
     print(json.dumps(res))
     return res
 

@@ -165,3 +165,4 @@ def test_so101_failures_classes_a_promp_checkpoint_as_it_classes_cnmp(tmp_path):
     finally:
         env.close()
     assert run["kind"] in ("success", "closed high", "dropped", "other") and run["close_step"] is not None
+    assert {"open_step", "open_goal_dist_m"} <= set(run)  # where the jaw reopened, for the drops
