@@ -37,34 +37,29 @@ HIGH_M = 0.02
 MAX_STEPS = 300
 
 
-def demo_offsets(root: Path) -> np.ndarray:
-    """[episodes, 3] end-effector minus block centre at each demo's first closing frame."""
+def goal_distance(env_state) -> float:
+    """The block's horizontal distance (m) from the goal in an ``environment_state`` (block x, y, z, goal x, y, z)."""
+    return float(np.linalg.norm(env_state[:2] - env_state[3:5]))
+
+
+def demo_grasps(root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The demos' reference, in one read of the dataset: [episodes, 3] end-effector minus block centre at each
+    demo's first closing frame, and [episodes, 2] the step at which its jaw reopens after that and the block's
+    distance from the goal then (:func:`goal_distance`)."""
     df = read_frames(root)
-    out = []
+    offsets, releases = [], []
     for _, g in df.groupby("episode_index"):
         act, state = np.stack(g["action"].values), np.stack(g["observation.state"].values)
         env = np.stack(g["observation.environment_state"].values)
         closed = np.flatnonzero(act[:, GRASP] < 0.5)
         if closed.size:
             k = int(closed[0])
-            out.append(state[k, EE] - env[k, :3])
-    return np.array(out, dtype=float)
-
-
-def demo_releases(root: Path) -> np.ndarray:
-    """[episodes, 2]: each demo's step at which the jaw reopens after its first closing, and the block's horizontal
-    distance (m) from the goal at that step."""
-    df = read_frames(root)
-    out = []
-    for _, g in df.groupby("episode_index"):
-        act, env = np.stack(g["action"].values), np.stack(g["observation.environment_state"].values)
-        closed = np.flatnonzero(act[:, GRASP] < 0.5)
-        if closed.size:
-            reopened = np.flatnonzero(act[closed[0]:, GRASP] >= 0.5)
+            offsets.append(state[k, EE] - env[k, :3])
+            reopened = np.flatnonzero(act[k:, GRASP] >= 0.5)
             if reopened.size:
-                k = int(closed[0] + reopened[0])
-                out.append((k, float(np.linalg.norm(env[k, :2] - env[k, 3:5]))))
-    return np.array(out, dtype=float)
+                j = k + int(reopened[0])
+                releases.append((j, goal_distance(env[j])))
+    return np.array(offsets, dtype=float), np.array(releases, dtype=float)
 
 
 def run_episode(policy, pre, post, env, seed: int) -> dict:
@@ -83,8 +78,7 @@ def run_episode(policy, pre, post, env, seed: int) -> dict:
             close_step, offset = k, (obs["agent_pos"][EE] - obs["environment_state"][:3]).astype(float)
         elif close_step is not None and open_step is None and action[GRASP] >= 0.5:
             # the jaw reopens: where the block is then, horizontally, from the goal
-            open_step = k
-            open_dist = float(np.linalg.norm(obs["environment_state"][:2] - obs["environment_state"][3:5]))
+            open_step, open_dist = k, goal_distance(obs["environment_state"])
         obs, _, term, trunc, info = env.step(action.astype(np.float32))
         lift = max(lift, float(obs["environment_state"][2]) - z0)
         success |= bool(info.get("is_success"))
@@ -131,7 +125,7 @@ def main() -> dict:
 
     ckpt, policy, pre, post = load_policy(args)
     env = gym.make("cnmp/SO101PickPlace-v0", render_mode=None)
-    demos = demo_offsets(DATASET)
+    demos, releases = demo_grasps(DATASET)
     print(f"demos' offset at closing (x, y, z, m): mean {np.round(demos.mean(0), 4).tolist()}, "
           f"std {np.round(demos.std(0), 4).tolist()} over {len(demos)} demos")
     print(f"{'seed':>7} {'result':<12}{'close step':>11}  {'offset x, y, z (m)':<26}{'lift (m)':>9}")
@@ -158,7 +152,6 @@ def main() -> dict:
           f"dropped {kinds['dropped']}, other {kinds['other']}; mean offset at closing: successes "
           f"{res['offset_mean_success_m']}, closed high {res['offset_mean_closed_high_m']} (demos "
           f"{res['demo_offset_mean_m']})")
-    releases = demo_releases(DATASET)
     res["demo_open_step_mean"] = round(float(releases[:, 0].mean()), 1)
     res["demo_open_goal_dist_m_max"] = round(float(releases[:, 1].max()), 4)
     for kind in ("success", "dropped"):
