@@ -212,6 +212,7 @@ def drift(pred_actions: list[np.ndarray], eps: dict) -> float:
 
 def run(task: str, demos: list[int], steps: int, batch_size: int, seeds: list[int], overrides: dict,
         methods: list[str], sim_episodes: int = 0, open_loop_too: bool = False, gamma_noise: float = 0.0) -> list[dict]:
+    from lerobot_cnmp.data import bank
     from lerobot_cnmp.promp.baselines import ProMPBaseline
 
     eps = load_episodes(REPO / f"datasets/cnmp_metaworld_{task}")
@@ -241,7 +242,8 @@ def run(task: str, demos: list[int], steps: int, batch_size: int, seeds: list[in
                 preds = [cnmp_predict(policy, eps[e])[:, cmd] for e in HELD_OUT]
                 fb = [cnmp_feedback(policy, eps[e])[:, cmd] for e in HELD_OUT]
                 rows.append({"task": task, "n": n, "method": "cnmp", "seed": seed, "steps": steps,
-                             "overrides": overrides, "gamma_noise": gamma_noise, "rmse": score(preds, eps, act_std),
+                             "overrides": overrides, "gamma_noise": gamma_noise,
+                             "task_std_floor": bank.TASK_STD_FLOOR, "rmse": score(preds, eps, act_std),
                              "rmse_feedback": score(fb, eps, act_std), "drift": drift(preds, eps), "train_s": round(secs, 1)})
                 if sim_episodes:
                     rows[-1]["sim_success"] = sim_success(policy, task, sim_episodes)
@@ -267,7 +269,16 @@ def main(argv=None) -> int:
     p.add_argument("--open_loop_too", action="store_true", help="also roll out without online feedback")
     p.add_argument("--set", action="append", default=[], help="CNMPConfig override key=JSON value")
     p.add_argument("--gamma_noise", type=float, default=0.0, help="screen: noise std on the normalized γ in training")
+    p.add_argument("--task_std_floor", type=float, default=None,
+                   help="γ's normalization floor, a fraction of the median γ std (default: the package's "
+                        "TASK_STD_FLOOR; 0.01, the SM's floor, is the normalization before 2026-12-07)")
     args = p.parse_args(argv)
+    if args.task_std_floor is not None:
+        if args.task_std_floor < 0:
+            p.error(f"--task_std_floor must be >= 0, got {args.task_std_floor}")
+        from lerobot_cnmp.data import bank
+
+        bank.TASK_STD_FLOOR = args.task_std_floor  # read by EpisodeBank.task_stats when the policy is built
     overrides = {}
     for s in args.set:
         k, _, v = s.partition("=")

@@ -12,7 +12,7 @@ import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
 from lerobot_cnmp.data import sm_spec
-from lerobot_cnmp.data.bank import EpisodeBank, floored_std
+from lerobot_cnmp.data.bank import TASK_STD_FLOOR, EpisodeBank, floored_std
 
 REPO = Path(__file__).resolve().parents[1]
 DATASET = REPO / "datasets" / "cnmp_obstacle2d"
@@ -57,3 +57,19 @@ def test_std_floor():
     std = floored_std([1.0, 2.0, 1e-9, 0.0])
     assert std[0] == 1.0 and std[2] == pytest.approx(5e-3) and std[3] == pytest.approx(5e-3)  # 1 % of the median
     np.testing.assert_array_equal(floored_std([0.0, 0.0]), [1.0, 1.0])  # never moves: unit scale
+
+
+def test_task_params_floor_quiets_a_near_constant_dim():
+    """γ's floor is 10 % of the median γ std: a dim ~30x quieter than the others (coffee-push-v3's resting heights)
+    is not scaled up to unit variance; a dim within 10x of the median is; the SM keeps its 1 % floor."""
+    rng = np.random.default_rng(0)
+    gamma = np.stack([rng.normal(0, s, 50) for s in (0.07, 0.02, 0.0006, 0.025, 0.012, 0.0006)], 1)
+    bank = EpisodeBank.from_arrays([np.zeros((5, 1), np.float32)] * 50, task_params=gamma)
+    mean, std = bank.task_stats()
+    raw = gamma.std(0)
+    med = np.median(raw)
+    assert TASK_STD_FLOOR == 0.1
+    np.testing.assert_allclose(std[[2, 5]], TASK_STD_FLOOR * med, rtol=1e-5)  # floored: noise scaled to ~0.3
+    np.testing.assert_allclose(std[[0, 1, 3, 4]], raw[[0, 1, 3, 4]], rtol=1e-5)  # real dims: unit variance
+    assert float(np.abs((gamma[:, 2] - mean[2]) / std[2]).max()) < 1.5
+    np.testing.assert_allclose(floored_std(raw)[[2, 5]], raw[[2, 5]], rtol=1e-5)  # the SM's 1 % floor would not

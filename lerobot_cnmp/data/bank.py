@@ -24,15 +24,23 @@ from lerobot_cnmp.data.sm_spec import SMSpec
 STD_FLOOR = 1e-2
 """An SM dim's normalization std is at least this fraction of the median SM dim's std."""
 
+TASK_STD_FLOOR = 0.1
+"""A γ dim's normalization std is at least this fraction of the median γ dim's std. Higher than the SM's floor:
+γ is one vector per episode that every prediction of the episode is conditioned on, so with few demos the
+network fits whatever varies in it. A γ dim that varies ~30x less than the others is a fixed quantity read
+with noise (coffee-push-v3: the mug's and the machine's resting height, std 0.6 mm against 12-72 mm for the
+positions); scaled to unit variance, its noise was as loud as the real conditions and CNMP's success with 10
+demos fell from 87 to 74 % (docs/fewdemo.md, section 10). Within 10x of the median a dim keeps unit variance."""
 
-def floored_std(std) -> np.ndarray:
+
+def floored_std(std, floor: float = STD_FLOOR) -> np.ndarray:
     """The normalization std: a dim that barely moves (e.g. a wrist held at one angle, whose std is IK round-off)
     would otherwise be scaled up to unit variance, and its noise, far below the model's σ floor, would dominate
-    the NLL. The median, not the largest, sets the floor: SM dims may mix units (metres, newtons). A dim that
-    never moves at all in any dim's scale (all stds zero) keeps std 1."""
+    the NLL. The median, not the largest, sets the floor (at ``floor`` times it): SM dims may mix units (metres,
+    newtons). A dim that never moves at all in any dim's scale (all stds zero) keeps std 1."""
     std = np.asarray(std, dtype=np.float64).reshape(-1)
     med = float(np.median(std)) if std.size else 0.0
-    floor = STD_FLOOR * med if med > 0 else 0.0
+    floor = floor * med if med > 0 else 0.0
     out = np.maximum(std, floor)
     out[out <= 1e-12] = 1.0
     return out.astype(np.float32)
@@ -147,7 +155,7 @@ class EpisodeBank:
         if self.task_params is None:
             return None
         g = self.task_params.double()
-        return g.mean(0).float().numpy(), floored_std(g.std(0, unbiased=False).numpy())
+        return g.mean(0).float().numpy(), floored_std(g.std(0, unbiased=False).numpy(), TASK_STD_FLOOR)
 
     def median_duration_s(self) -> float:
         return float(np.median(self.durations_s))
