@@ -274,8 +274,8 @@ def main(argv=None) -> int:
                         "TASK_STD_FLOOR; 0.01, the SM's floor, is the normalization before 2026-12-07)")
     args = p.parse_args(argv)
     if args.task_std_floor is not None:
-        if args.task_std_floor < 0:
-            p.error(f"--task_std_floor must be >= 0, got {args.task_std_floor}")
+        if not np.isfinite(args.task_std_floor) or args.task_std_floor < 0:
+            p.error(f"--task_std_floor must be a finite number >= 0, got {args.task_std_floor}")
         from lerobot_cnmp.data import bank
 
         bank.TASK_STD_FLOOR = args.task_std_floor  # read by EpisodeBank.task_stats when the policy is built

@@ -34,14 +34,14 @@ succeeded 74 % of the time against 84.7 % with this floor (docs/fewdemo.md, sect
 the median keeps unit variance."""
 
 
-def floored_std(std, floor: float = STD_FLOOR) -> np.ndarray:
+def floored_std(std, fraction: float = STD_FLOOR) -> np.ndarray:
     """The normalization std: a dim that barely moves (e.g. a wrist held at one angle, whose std is IK round-off)
     would otherwise be scaled up to unit variance, and its noise, far below the model's σ floor, would dominate
-    the NLL. The median, not the largest, sets the floor (at ``floor`` times it): SM dims may mix units (metres,
+    the NLL. The median, not the largest, sets the floor (``fraction`` times it): SM dims may mix units (metres,
     newtons). A dim that never moves at all in any dim's scale (all stds zero) keeps std 1."""
     std = np.asarray(std, dtype=np.float64).reshape(-1)
     med = float(np.median(std)) if std.size else 0.0
-    floor = floor * med if med > 0 else 0.0
+    floor = fraction * med if med > 0 else 0.0
     out = np.maximum(std, floor)
     out[out <= 1e-12] = 1.0
     return out.astype(np.float32)
